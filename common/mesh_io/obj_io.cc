@@ -1,0 +1,1 @@
+// placeholder until the obj reader lands

@@ -1,0 +1,1 @@
+// placeholder until the vtk_legacy reader lands

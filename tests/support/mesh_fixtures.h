@@ -1,0 +1,43 @@
+// Small meshes built in code, paths of the real meshes in shared/data/meshes, and comparisons,
+// for the tests of common/mesh and common/mesh_io.
+#pragma once
+
+#include <gtest/gtest.h>
+
+#include <string>
+
+#include "common/mesh_io/mesh_data.h"
+
+namespace somasim::testing {
+
+// A box of nx × ny × nz hexahedra, each split into 6 positively oriented tetrahedra, with the
+// boundary triangles (outward) as well. Size [m], origin at 0.
+mesh_io::MeshData BoxTets(int nx, int ny, int nz, double sx = 1.0, double sy = 1.0,
+                          double sz = 1.0);
+// The same box's vertices and outward boundary triangles only (a closed surface).
+mesh_io::MeshData BoxSurface(int nx, int ny, int nz);
+// An open square patch in the z = 0 plane: (n+1)² vertices, 2n² triangles.
+mesh_io::MeshData SquarePatch(int n);
+// A regular tetrahedron with edge length `edge` [m].
+mesh_io::MeshData RegularTet(double edge = 1.0);
+
+// Absolute path of shared/data/meshes/<name>.
+std::string SharedMesh(const std::string& name);
+// Absolute path of tests/data/<name>.
+std::string TestData(const std::string& name);
+// A fresh empty directory under the system temp dir, for files a test writes.
+std::string MakeTempDir(const std::string& prefix);
+// Whole file as bytes; fails the test (and returns "") when unreadable.
+std::string Slurp(const std::string& path);
+void WriteBytes(const std::string& path, const std::string& bytes);
+
+// Same topology (identical index arrays) and coordinates equal to `tolerance` (absolute, m).
+::testing::AssertionResult SameMesh(const mesh_io::MeshData& expected,
+                                    const mesh_io::MeshData& actual, double tolerance);
+// Same as SameMesh up to a renumbering of vertices: each actual vertex is matched to the
+// expected vertex at the same position (within tolerance); elements compared in order.
+::testing::AssertionResult SameMeshUpToVertexOrder(const mesh_io::MeshData& expected,
+                                                   const mesh_io::MeshData& actual,
+                                                   double tolerance);
+
+}  // namespace somasim::testing
