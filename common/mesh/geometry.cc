@@ -11,8 +11,8 @@ BoundingBox ComputeBoundingBox(const Points& points) {
   return box;
 }
 
-double TetSignedVolume(const Eigen::Vector3d& a, const Eigen::Vector3d& b,
-                       const Eigen::Vector3d& c, const Eigen::Vector3d& d) {
+double TetSignedVolume(const Eigen::Vector3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& c,
+                       const Eigen::Vector3d& d) {
   return (b - a).dot((c - a).cross(d - a)) / 6.0;
 }
 

@@ -18,8 +18,8 @@ BoundingBox ComputeBoundingBox(const Points& points);
 
 // Signed volume [m³] of the tetrahedron (a, b, c, d): (b-a)·((c-a)×(d-a)) / 6.
 // Positive for the orientation convention of mesh_types.h.
-double TetSignedVolume(const Eigen::Vector3d& a, const Eigen::Vector3d& b,
-                       const Eigen::Vector3d& c, const Eigen::Vector3d& d);
+double TetSignedVolume(const Eigen::Vector3d& a, const Eigen::Vector3d& b, const Eigen::Vector3d& c,
+                       const Eigen::Vector3d& d);
 double TetSignedVolume(const Points& points, const Eigen::Ref<const Eigen::Vector4i>& tet);
 
 // Sum of signed tetrahedron volumes [m³].

@@ -23,9 +23,9 @@ void FaceNormals(const Eigen::Vector3d* x, Eigen::Vector3d* n) {
 
 double TetNormalisedVolume(const Eigen::Vector3d& a, const Eigen::Vector3d& b,
                            const Eigen::Vector3d& c, const Eigen::Vector3d& d) {
-  const double longest = std::sqrt(std::max({(b - a).squaredNorm(), (c - a).squaredNorm(),
-                                             (d - a).squaredNorm(), (c - b).squaredNorm(),
-                                             (d - b).squaredNorm(), (d - c).squaredNorm()}));
+  const double longest =
+      std::sqrt(std::max({(b - a).squaredNorm(), (c - a).squaredNorm(), (d - a).squaredNorm(),
+                          (c - b).squaredNorm(), (d - b).squaredNorm(), (d - c).squaredNorm()}));
   if (!(longest > 0)) return 0.0;
   return 6.0 * TetSignedVolume(a, b, c, d) / (longest * longest * longest);
 }

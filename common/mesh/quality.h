@@ -8,8 +8,8 @@
 namespace somasim::mesh {
 
 struct TetQuality {
-  double signed_volume = 0.0;    // [m³]; <= 0 means inverted or degenerate
-  double aspect_ratio = 0.0;     // longest edge / (2·√6·inradius); 1 for a regular tet, >= 1
+  double signed_volume = 0.0;     // [m³]; <= 0 means inverted or degenerate
+  double aspect_ratio = 0.0;      // longest edge / (2·√6·inradius); 1 for a regular tet, >= 1
   double min_dihedral_deg = 0.0;  // smallest of the six dihedral angles [deg], 0..180
   double max_dihedral_deg = 0.0;  // largest of the six dihedral angles [deg], 0..180
 };

@@ -37,12 +37,12 @@ SurfaceMesh CompactSurface(const SurfaceMesh& surface, std::vector<int32_t>* old
 
 struct SurfaceTopology {
   int64_t num_edges = 0;
-  int64_t num_boundary_edges = 0;      // edges with exactly one triangle
-  int64_t num_nonmanifold_edges = 0;   // edges with three or more triangles
-  int64_t num_misoriented_edges = 0;   // two-triangle edges traversed the same way by both
+  int64_t num_boundary_edges = 0;        // edges with exactly one triangle
+  int64_t num_nonmanifold_edges = 0;     // edges with three or more triangles
+  int64_t num_misoriented_edges = 0;     // two-triangle edges traversed the same way by both
   int64_t num_nonmanifold_vertices = 0;  // vertices whose triangle fan is not one disc/half-disc
   int64_t num_degenerate_triangles = 0;  // a repeated index
-  int64_t num_components = 0;  // connected components of triangles (by shared edges)
+  int64_t num_components = 0;            // connected components of triangles (by shared edges)
   // Closed: every edge has exactly two triangles, consistently oriented, no degenerate triangle.
   bool watertight = false;
   // Every edge has one or two triangles and every vertex has a single fan.

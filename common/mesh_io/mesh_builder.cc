@@ -69,8 +69,7 @@ void MeshBuilder::AddTriangle(int64_t a, int64_t b, int64_t c, SourceLocation wh
   tri_where_.push_back(where);
 }
 
-void MeshBuilder::AddTetrahedron(int64_t a, int64_t b, int64_t c, int64_t d,
-                                 SourceLocation where) {
+void MeshBuilder::AddTetrahedron(int64_t a, int64_t b, int64_t c, int64_t d, SourceLocation where) {
   for (int64_t v : {a, b, c, d}) {
     if (v < 0 || v >= std::numeric_limits<int32_t>::max()) {
       Fail(MeshErrorKind::kIndex, where,

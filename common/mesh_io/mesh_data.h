@@ -13,7 +13,7 @@ namespace somasim::mesh_io {
 
 // Length unit of the numbers in a file. Files carry no reliable unit (SPEC §6).
 enum class Unit { kMetre, kCentimetre, kMillimetre };
-double UnitToMetres(Unit unit);  // 1, 0.01, 0.001
+double UnitToMetres(Unit unit);   // 1, 0.01, 0.001
 const char* UnitName(Unit unit);  // "m", "cm", "mm"
 std::optional<Unit> ParseUnit(std::string_view text);
 

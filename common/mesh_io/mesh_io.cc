@@ -178,8 +178,8 @@ WriteReport WriteMeshFile(const std::string& path, const MeshData& mesh,
     case FileFormat::kVtu: {
       VtuWriteOptions vtu;
       vtu.encoding = options.encoding == Encoding::kAscii ? VtuEncoding::kAscii
-                     : options.vtu_base64                  ? VtuEncoding::kBase64
-                                                           : VtuEncoding::kAppendedRaw;
+                     : options.vtu_base64                 ? VtuEncoding::kBase64
+                                                          : VtuEncoding::kAppendedRaw;
       vtu.big_endian = options.big_endian;
       WriteFileBytes(path, WriteVtu(out, vtu));
       break;

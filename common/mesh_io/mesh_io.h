@@ -29,8 +29,8 @@ MeshData ReadMeshBytes(FileFormat format, std::string_view bytes, const std::str
                        const ReadOptions& options);
 
 struct WriteOptions {
-  Unit unit = Unit::kMetre;               // unit of the written coordinates
-  Encoding encoding = Encoding::kAscii;   // STL, legacy VTK, Gmsh 2.2/4.1, VTU (kBinary)
+  Unit unit = Unit::kMetre;              // unit of the written coordinates
+  Encoding encoding = Encoding::kAscii;  // STL, legacy VTK, Gmsh 2.2/4.1, VTU (kBinary)
   GmshVersion gmsh_version = GmshVersion::kV41;
   bool vtu_base64 = false;  // VTU binary: inline base64 instead of appended raw data
   bool big_endian = false;  // VTU binary byte order

@@ -1,13 +1,17 @@
 #include "common/mesh_io/text_reader.h"
 
 #include <charconv>
+#include <cstdlib>
+#include <string>
 #include <cmath>
 #include <limits>
 
 namespace somasim::mesh_io {
 namespace {
 
-bool IsSpace(char c) { return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f'; }
+bool IsSpace(char c) {
+  return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
+}
 
 std::string Quote(std::string_view token) {
   constexpr size_t kMax = 40;
@@ -35,11 +39,11 @@ bool ParseDouble(std::string_view token, double* value) {
   const char* end = token.data() + token.size();
   auto [ptr, ec] = std::from_chars(token.data(), end, *value, std::chars_format::general);
   if (ec == std::errc::result_out_of_range) {
-    // Overflow reads as infinity, underflow as zero, so the caller can report a non-finite value.
+    // from_chars leaves the value untouched on overflow/underflow; strtod gives ±inf or a
+    // denormal/zero, so the caller can name a non-finite value precisely.
     if (ptr != end) return false;
-    double probe = 0.0;
-    std::from_chars(token.data(), end, probe, std::chars_format::general);
-    *value = probe;
+    const std::string copy(token);
+    *value = std::strtod(copy.c_str(), nullptr);
     return true;
   }
   return ec == std::errc() && ptr == end;
@@ -92,8 +96,8 @@ int64_t TextReader::Int(std::string_view what) {
 int64_t TextReader::IntInRange(std::string_view what, int64_t lo, int64_t hi) {
   const int64_t value = Int(what);
   if (value < lo || value > hi) {
-    Fail(MeshErrorKind::kCount, std::string(what) + " is " + std::to_string(value) +
-                                    ", outside " + std::to_string(lo) + ".." + std::to_string(hi));
+    Fail(MeshErrorKind::kCount, std::string(what) + " is " + std::to_string(value) + ", outside " +
+                                    std::to_string(lo) + ".." + std::to_string(hi));
   }
   return value;
 }
@@ -154,8 +158,8 @@ void TextReader::EndOfLine(std::string_view what) {
 
 void TextReader::CheckCount(int64_t count, int64_t min_bytes_each, std::string_view what) const {
   if (count < 0) {
-    Fail(MeshErrorKind::kCount, "negative count of " + std::string(what) + ": " +
-                                    std::to_string(count));
+    Fail(MeshErrorKind::kCount,
+         "negative count of " + std::string(what) + ": " + std::to_string(count));
   }
   const int64_t left = static_cast<int64_t>(remaining());
   if (min_bytes_each > 0 && count > left / min_bytes_each) {

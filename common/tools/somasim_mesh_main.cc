@@ -1,1 +1,99 @@
-int main() { return 0; }
+// somasim-mesh: inspect, convert and tetrahedralise mesh files.
+//   somasim-mesh info FILE [--unit m|cm|mm] [--json] [--fix-orientation]
+//   somasim-mesh convert IN OUT [--unit U] [--out-unit U] [--binary] [--msh-version V] ...
+//   somasim-mesh tetrahedralize SURFACE OUT [--quality Q] [--max-volume V] ...
+#include <CLI/CLI.hpp>
+#include <exception>
+#include <iostream>
+#include <map>
+
+#include "common/tools/mesh_commands.h"
+
+namespace {
+
+using somasim::mesh_io::GmshVersion;
+using somasim::mesh_io::Unit;
+
+const std::map<std::string, Unit> kUnits = {
+    {"m", Unit::kMetre}, {"cm", Unit::kCentimetre}, {"mm", Unit::kMillimetre}};
+
+void AddReadOptions(CLI::App* cmd, somasim::mesh_io::ReadOptions* read) {
+  cmd->add_option("--unit", read->unit, "Unit of the input's coordinates (default m)")
+      ->transform(CLI::CheckedTransformer(kUnits, CLI::ignore_case));
+  cmd->add_flag("--fix-orientation", read->fix_orientation,
+                "Flip inverted tetrahedra instead of refusing the file");
+}
+
+void AddWriteOptions(CLI::App* cmd, somasim::mesh_io::WriteOptions* write) {
+  cmd->add_option("--out-unit", write->unit, "Unit of the written coordinates (default m)")
+      ->transform(CLI::CheckedTransformer(kUnits, CLI::ignore_case));
+  cmd->add_flag_callback(
+      "--binary", [write] { write->encoding = somasim::mesh_io::Encoding::kBinary; },
+      "Binary encoding (STL, legacy VTK, Gmsh 2.2/4.1, VTU appended raw)");
+  cmd->add_option("--msh-version", write->gmsh_version, "Gmsh output version: 1, 2.2 or 4.1")
+      ->transform(CLI::CheckedTransformer(
+          std::map<std::string, GmshVersion>{
+              {"1", GmshVersion::kV1}, {"2.2", GmshVersion::kV22}, {"4.1", GmshVersion::kV41}},
+          CLI::ignore_case));
+  cmd->add_flag("--vtu-base64", write->vtu_base64,
+                "VTU binary as inline base64 instead of appended raw data (with --binary)");
+  cmd->add_flag("--big-endian", write->big_endian, "VTU binary data in big-endian byte order");
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"somasim-mesh: inspect, convert and tetrahedralise mesh files (OBJ, STL, legacy "
+               "VTK, VTU, Gmsh .msh 1/2.2/4.1, TetGen .node/.ele/.face)"};
+  app.require_subcommand(1);
+
+  somasim::tools::InfoOptions info;
+  CLI::App* info_cmd = app.add_subcommand("info", "Counts, bounding box, volume, quality, "
+                                                  "watertightness of a mesh file");
+  info_cmd->add_option("file", info.file, "Mesh file")->required();
+  info_cmd->add_flag("--json", info.json, "Print one JSON object");
+  AddReadOptions(info_cmd, &info.read);
+
+  somasim::tools::ConvertOptions convert;
+  CLI::App* convert_cmd =
+      app.add_subcommand("convert", "Convert between formats (chosen by the file extensions)");
+  convert_cmd->add_option("input", convert.input, "Input mesh file")->required();
+  convert_cmd->add_option("output", convert.output, "Output mesh file")->required();
+  AddReadOptions(convert_cmd, &convert.read);
+  AddWriteOptions(convert_cmd, &convert.write);
+
+  somasim::tools::TetrahedralizeOptions tet;
+  CLI::App* tet_cmd = app.add_subcommand(
+      "tetrahedralize", "Fill a closed surface with tetrahedra (runs the external tetgen program)");
+  tet_cmd->add_option("surface", tet.input, "Closed surface mesh file")->required();
+  tet_cmd->add_option("output", tet.output, "Output volume mesh (.vtk .vtu .msh .node)")
+      ->required();
+  tet_cmd->add_option("--quality", tet.radius_edge_ratio,
+                      "Radius-edge ratio bound, > 1 (TetGen -q; default 1.414)");
+  tet_cmd->add_option("--max-volume", tet.max_volume_m3,
+                      "Largest tetrahedron volume in m^3 (TetGen -a; default none)");
+  tet_cmd->add_option("--tetgen", tet.tetgen, "The tetgen program (default: tetgen on PATH)");
+  AddReadOptions(tet_cmd, &tet.read);
+  AddWriteOptions(tet_cmd, &tet.write);
+
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::CallForHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::CallForAllHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::ParseError& e) {
+    app.exit(e);
+    return somasim::tools::kExitUsage;
+  }
+
+  try {
+    if (*info_cmd) return somasim::tools::RunInfo(info, std::cout, std::cerr);
+    if (*convert_cmd) return somasim::tools::RunConvert(convert, std::cout, std::cerr);
+    if (*tet_cmd) return somasim::tools::RunTetrahedralize(tet, std::cout, std::cerr);
+  } catch (const std::exception& e) {
+    std::cerr << "somasim-mesh: internal error: " << e.what() << "\n";
+    return somasim::tools::kExitInternal;
+  }
+  return somasim::tools::kExitUsage;
+}

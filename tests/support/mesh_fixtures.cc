@@ -145,12 +145,12 @@ namespace {
 ::testing::AssertionResult SameElements(const mesh_io::MeshData& e, const mesh_io::MeshData& a,
                                         const std::vector<int32_t>& map) {
   if (e.triangles.cols() != a.triangles.cols()) {
-    return ::testing::AssertionFailure() << "triangle count " << a.triangles.cols()
-                                         << ", expected " << e.triangles.cols();
+    return ::testing::AssertionFailure()
+           << "triangle count " << a.triangles.cols() << ", expected " << e.triangles.cols();
   }
   if (e.tetrahedra.cols() != a.tetrahedra.cols()) {
-    return ::testing::AssertionFailure() << "tetrahedron count " << a.tetrahedra.cols()
-                                         << ", expected " << e.tetrahedra.cols();
+    return ::testing::AssertionFailure()
+           << "tetrahedron count " << a.tetrahedra.cols() << ", expected " << e.tetrahedra.cols();
   }
   for (Eigen::Index i = 0; i < a.triangles.size(); ++i) {
     if (map[static_cast<size_t>(a.triangles.data()[i])] != e.triangles.data()[i]) {
@@ -185,8 +185,7 @@ namespace {
 }
 
 ::testing::AssertionResult SameMeshUpToVertexOrder(const mesh_io::MeshData& e,
-                                                   const mesh_io::MeshData& a,
-                                                   double tolerance) {
+                                                   const mesh_io::MeshData& a, double tolerance) {
   // Match by rounding coordinates to the tolerance grid, then check the exact distance.
   std::multimap<std::array<long long, 3>, int32_t> index;
   const double cell = std::max(tolerance, 1e-300) * 4;

@@ -1,0 +1,48 @@
+// The commands of somasim-mesh, as functions returning a process exit code, so that tests can
+// call them without a shell. The CLI parsing lives in somasim_mesh_main.cc.
+#pragma once
+
+#include <iosfwd>
+#include <optional>
+#include <string>
+
+#include "common/mesh_io/mesh_io.h"
+
+namespace somasim::tools {
+
+// Exit codes (all in 1..125, as shells and CTest expect).
+inline constexpr int kExitOk = 0;
+inline constexpr int kExitUsage = 2;             // bad command line
+inline constexpr int kExitBadInput = 3;          // a mesh file was refused (malformed, invalid)
+inline constexpr int kExitIo = 4;                // a file could not be read or written
+inline constexpr int kExitTetrahedralize = 5;    // the surface cannot be, or was not, meshed
+inline constexpr int kExitInternal = 70;         // a bug: an unexpected exception
+
+struct InfoOptions {
+  std::string file;
+  mesh_io::ReadOptions read;
+  bool json = false;
+};
+
+struct ConvertOptions {
+  std::string input;
+  std::string output;
+  mesh_io::ReadOptions read;
+  mesh_io::WriteOptions write;
+};
+
+struct TetrahedralizeOptions {
+  std::string input;   // a closed surface (or a volume mesh, whose boundary is used)
+  std::string output;  // any format that holds tetrahedra
+  mesh_io::ReadOptions read;
+  mesh_io::WriteOptions write;
+  double radius_edge_ratio = 1.414;  // TetGen -q bound, > 1 (smaller = better shaped, more tets)
+  double max_volume_m3 = 0.0;        // TetGen -a bound [m³]; 0 = none
+  std::string tetgen = "tetgen";     // the TetGen program (AGPL: run, never linked)
+};
+
+int RunInfo(const InfoOptions& options, std::ostream& out, std::ostream& err);
+int RunConvert(const ConvertOptions& options, std::ostream& out, std::ostream& err);
+int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out, std::ostream& err);
+
+}  // namespace somasim::tools

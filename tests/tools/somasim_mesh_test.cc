@@ -1,0 +1,171 @@
+// somasim-mesh: what `info`, `convert` and `tetrahedralize` print and return, in-process and
+// through the real executable (exit codes, JSON keys of SPEC §6).
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include <array>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "common/mesh_io/mesh_io.h"
+#include "common/tools/mesh_commands.h"
+#include "tests/support/mesh_fixtures.h"
+
+namespace somasim::tools {
+namespace {
+
+struct Run {
+  int status = -1;
+  std::string out;
+};
+
+// Runs build/bin/somasim-mesh with arguments (quoted by the caller), stdout captured,
+// stderr appended to it.
+Run RunTool(const std::string& args) {
+  const char* bin = std::getenv("SOMASIM_BIN_DIR");
+  const std::string command =
+      std::string(bin != nullptr ? bin : ".") + "/somasim-mesh " + args + " 2>&1";
+  Run run;
+  FILE* pipe = popen(command.c_str(), "r");
+  if (pipe == nullptr) return run;
+  std::array<char, 4096> buffer;
+  size_t n = 0;
+  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) run.out.append(buffer.data(), n);
+  const int status = pclose(pipe);
+  run.status = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return run;
+}
+
+TEST(SomasimMeshInfo, JsonHasTheSpecKeysInMetres) {
+  const Run run = RunTool("info --json --unit cm " + testing::SharedMesh("liver.msh"));
+  ASSERT_EQ(run.status, 0) << run.out;
+  const nlohmann::json j = nlohmann::json::parse(run.out);
+  for (const char* key : {"nodes", "tetrahedra", "triangles", "bbox_min", "bbox_max", "volume_m3",
+                          "min_dihedral_deg", "watertight"}) {
+    EXPECT_TRUE(j.contains(key)) << key;
+  }
+  EXPECT_EQ(j["nodes"], 181);
+  EXPECT_EQ(j["tetrahedra"], 596);
+  EXPECT_NEAR(j["bbox_min"][0].get<double>(), -0.0467928, 1e-9);
+  EXPECT_NEAR(j["bbox_max"][1].get<double>(), 0.0515717, 1e-9);
+  EXPECT_TRUE(j["watertight"].get<bool>());
+  EXPECT_GT(j["volume_m3"].get<double>(), 0.0);
+  EXPECT_GT(j["min_dihedral_deg"].get<double>(), 0.0);
+  EXPECT_EQ(j["unit"], "cm");
+}
+
+TEST(SomasimMeshInfo, TextNamesCountsAndUnit) {
+  const Run run = RunTool("info " + testing::SharedMesh("liver.msh") + " --unit cm");
+  ASSERT_EQ(run.status, 0) << run.out;
+  EXPECT_NE(run.out.find("nodes 181"), std::string::npos) << run.out;
+  EXPECT_NE(run.out.find("read as cm"), std::string::npos) << run.out;
+}
+
+TEST(SomasimMeshInfo, BrokenFileExitsThreeNamingFileAndFault) {
+  const Run run = RunTool("info " + testing::SharedMesh("6_tetra_bad.msh"));
+  EXPECT_EQ(run.status, kExitBadInput) << run.out;
+  EXPECT_NE(run.out.find("6_tetra_bad.msh:"), std::string::npos) << run.out;
+  EXPECT_NE(run.out.find("duplicated"), std::string::npos) << run.out;
+}
+
+TEST(SomasimMeshInfo, MissingFileExitsFour) {
+  EXPECT_EQ(RunTool("info /nonexistent/mesh.vtu").status, kExitIo);
+}
+
+TEST(SomasimMesh, BadCommandLinesExitTwo) {
+  EXPECT_EQ(RunTool("").status, kExitUsage);
+  EXPECT_EQ(RunTool("frobnicate x").status, kExitUsage);
+  EXPECT_EQ(RunTool("info").status, kExitUsage);
+  EXPECT_EQ(RunTool("info x.vtu --unit furlong").status, kExitUsage);
+  EXPECT_EQ(RunTool("convert a.vtu b.msh --msh-version 3").status, kExitUsage);
+  EXPECT_EQ(RunTool("--help").status, 0);
+}
+
+TEST(SomasimMeshConvert, ConvertsBetweenFormatsKeepingTheMesh) {
+  const std::string dir = testing::MakeTempDir("somasim-convert");
+  const Run run = RunTool("convert --unit cm " + testing::SharedMesh("liver.msh") + " " + dir +
+                          "/liver.vtu --binary");
+  ASSERT_EQ(run.status, 0) << run.out;
+  mesh_io::ReadOptions cm;
+  cm.unit = mesh_io::Unit::kCentimetre;
+  const mesh_io::MeshData original = mesh_io::ReadMeshFile(testing::SharedMesh("liver.msh"), cm);
+  EXPECT_TRUE(testing::SameMesh(original, mesh_io::ReadMeshFile(dir + "/liver.vtu", {}), 0.0));
+  // A surface format gets the boundary and says so.
+  const Run obj = RunTool("convert " + dir + "/liver.vtu " + dir + "/liver.obj");
+  ASSERT_EQ(obj.status, 0) << obj.out;
+  EXPECT_NE(obj.out.find("boundary surface"), std::string::npos) << obj.out;
+}
+
+TEST(SomasimMeshConvert, InvertedInputNeedsFixOrientation) {
+  const std::string dir = testing::MakeTempDir("somasim-fix");
+  mesh_io::MeshData box = testing::BoxTets(1, 1, 1);
+  std::swap(box.tetrahedra(0, 2), box.tetrahedra(1, 2));
+  // Write it unchecked through a format whose writer does not validate: ASCII VTU.
+  mesh_io::WriteMeshFile(dir + "/bad.vtu", box, {});
+  const Run refused = RunTool("convert " + dir + "/bad.vtu " + dir + "/out.msh");
+  EXPECT_EQ(refused.status, kExitBadInput) << refused.out;
+  EXPECT_NE(refused.out.find("inverted"), std::string::npos) << refused.out;
+  const Run fixed = RunTool("convert --fix-orientation " + dir + "/bad.vtu " + dir + "/out.msh");
+  EXPECT_EQ(fixed.status, 0) << fixed.out;
+  EXPECT_EQ(mesh_io::ReadMeshFile(dir + "/out.msh", {}).tetrahedra.cols(), 6);
+}
+
+TEST(SomasimMeshTetrahedralize, FillsSofaLiverSurfaceWithPositiveTets) {
+  const std::string dir = testing::MakeTempDir("somasim-tetra");
+  InfoOptions info;
+  std::ostringstream out, err;
+  TetrahedralizeOptions options;
+  options.input = testing::SharedMesh("liver.obj");
+  options.read.unit = mesh_io::Unit::kCentimetre;
+  options.output = dir + "/liver.vtu";
+  ASSERT_EQ(RunTetrahedralize(options, out, err), kExitOk) << err.str();
+  const mesh_io::MeshData volume = mesh_io::ReadMeshFile(options.output, {});
+  EXPECT_GT(volume.tetrahedra.cols(), 100);
+  // The volume fills the surface: same enclosed volume, same bounding box.
+  mesh_io::ReadOptions cm;
+  cm.unit = mesh_io::Unit::kCentimetre;
+  const mesh_io::MeshData surface = mesh_io::ReadMeshFile(options.input, cm);
+  info.file = options.output;
+  info.json = true;
+  std::ostringstream json;
+  ASSERT_EQ(RunInfo(info, json, err), kExitOk);
+  const nlohmann::json j = nlohmann::json::parse(json.str());
+  EXPECT_TRUE(j["watertight"].get<bool>());
+  EXPECT_GT(j["min_dihedral_deg"].get<double>(), 0.0);
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_NEAR(j["bbox_min"][k].get<double>(), surface.vertices.row(k).minCoeff(), 1e-12);
+    EXPECT_NEAR(j["bbox_max"][k].get<double>(), surface.vertices.row(k).maxCoeff(), 1e-12);
+  }
+}
+
+TEST(SomasimMeshTetrahedralize, OpenSurfaceIsRefusedBeforeRunningTetgen) {
+  const std::string dir = testing::MakeTempDir("somasim-open");
+  mesh_io::WriteMeshFile(dir + "/patch.obj", testing::SquarePatch(3), {});
+  TetrahedralizeOptions options;
+  options.input = dir + "/patch.obj";
+  options.output = dir + "/out.vtu";
+  options.tetgen = "/nonexistent/tetgen";  // must not get that far
+  std::ostringstream out, err;
+  EXPECT_EQ(RunTetrahedralize(options, out, err), kExitTetrahedralize);
+  EXPECT_NE(err.str().find("not closed"), std::string::npos) << err.str();
+}
+
+TEST(SomasimMeshTetrahedralize, MissingTetgenProgramIsReported) {
+  const std::string dir = testing::MakeTempDir("somasim-notetgen");
+  mesh_io::WriteMeshFile(dir + "/box.stl", testing::BoxSurface(1, 1, 1), {});
+  TetrahedralizeOptions options;
+  options.input = dir + "/box.stl";
+  options.output = dir + "/out.vtu";
+  options.tetgen = "/nonexistent/tetgen";
+  std::ostringstream out, err;
+  EXPECT_EQ(RunTetrahedralize(options, out, err), kExitTetrahedralize);
+  EXPECT_NE(err.str().find("/nonexistent/tetgen"), std::string::npos) << err.str();
+  options.output = dir + "/out.obj";  // cannot hold tetrahedra
+  EXPECT_EQ(RunTetrahedralize(options, out, err), kExitUsage);
+}
+
+}  // namespace
+}  // namespace somasim::tools
