@@ -1,10 +1,10 @@
 #include "common/mesh_io/text_reader.h"
 
 #include <charconv>
-#include <cstdlib>
-#include <string>
 #include <cmath>
+#include <cstdlib>
 #include <limits>
+#include <string>
 
 namespace somasim::mesh_io {
 namespace {
@@ -13,7 +13,9 @@ bool IsSpace(char c) {
   return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
 }
 
-std::string Quote(std::string_view token) {
+}  // namespace
+
+std::string QuoteToken(std::string_view token) {
   constexpr size_t kMax = 40;
   std::string shown(token.substr(0, kMax));
   for (char& c : shown) {
@@ -22,8 +24,6 @@ std::string Quote(std::string_view token) {
   if (token.size() > kMax) shown += "...";
   return "'" + shown + "'";
 }
-
-}  // namespace
 
 bool ParseInt64(std::string_view token, int64_t* value) {
   if (!token.empty() && token.front() == '+') token.remove_prefix(1);
@@ -88,7 +88,7 @@ int64_t TextReader::Int(std::string_view what) {
   int64_t value = 0;
   if (!ParseInt64(token, &value)) {
     Fail(MeshErrorKind::kSyntax,
-         "expected an integer for " + std::string(what) + ", found " + Quote(token));
+         "expected an integer for " + std::string(what) + ", found " + QuoteToken(token));
   }
   return value;
 }
@@ -107,7 +107,7 @@ double TextReader::Double(std::string_view what) {
   double value = 0.0;
   if (!ParseDouble(token, &value)) {
     Fail(MeshErrorKind::kSyntax,
-         "expected a number for " + std::string(what) + ", found " + Quote(token));
+         "expected a number for " + std::string(what) + ", found " + QuoteToken(token));
   }
   return value;
 }
@@ -145,7 +145,7 @@ void TextReader::EndOfLine(std::string_view what) {
       token_line_ = line_;
       const size_t start = pos_;
       while (pos_ < text_.size() && !IsSpace(text_[pos_])) ++pos_;
-      Fail(MeshErrorKind::kSyntax, "unexpected " + Quote(text_.substr(start, pos_ - start)) +
+      Fail(MeshErrorKind::kSyntax, "unexpected " + QuoteToken(text_.substr(start, pos_ - start)) +
                                        " after " + std::string(what));
     }
     ++pos_;

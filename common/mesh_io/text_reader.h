@@ -15,6 +15,10 @@ namespace somasim::mesh_io {
 bool ParseInt64(std::string_view token, int64_t* value);
 bool ParseDouble(std::string_view token, double* value);
 
+// A token shown in an error message: quoted, at most 40 characters, control and non-ASCII
+// bytes replaced by '?' (so binary garbage cannot garble a terminal).
+std::string QuoteToken(std::string_view token);
+
 class TextReader {
  public:
   TextReader(std::string_view text, std::string file_name);
