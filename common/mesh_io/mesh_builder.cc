@@ -89,6 +89,11 @@ void MeshBuilder::Fail(MeshErrorKind kind, SourceLocation where, const std::stri
 
 MeshData MeshBuilder::Finish(const ReadOptions& options) {
   const int64_t n = num_nodes();
+  if (n == 0) {
+    // An empty file, or one with no geometry, is never what a user meant to load.
+    Fail(MeshErrorKind::kSyntax, {},
+         "the file holds no nodes (empty file, or not a " + format_ + " mesh)");
+  }
   const auto node = [&](int32_t i) {
     const size_t k = 3 * static_cast<size_t>(i);
     return Eigen::Vector3d(coords_[k], coords_[k + 1], coords_[k + 2]);

@@ -7,6 +7,7 @@
 
 #include "common/mesh_io/gmsh_io.h"
 #include "common/mesh_io/mesh_data.h"
+#include "common/mesh_io/mesh_error.h"
 #include "common/mesh_io/stl_io.h"
 #include "common/mesh_io/vtu_io.h"
 

@@ -17,18 +17,18 @@
 namespace somasim::tools {
 namespace {
 
-struct Run {
+struct ToolRun {
   int status = -1;
   std::string out;
 };
 
 // Runs build/bin/somasim-mesh with arguments (quoted by the caller), stdout captured,
 // stderr appended to it.
-Run RunTool(const std::string& args) {
+ToolRun RunTool(const std::string& args) {
   const char* bin = std::getenv("SOMASIM_BIN_DIR");
   const std::string command =
       std::string(bin != nullptr ? bin : ".") + "/somasim-mesh " + args + " 2>&1";
-  Run run;
+  ToolRun run;
   FILE* pipe = popen(command.c_str(), "r");
   if (pipe == nullptr) return run;
   std::array<char, 4096> buffer;
@@ -40,7 +40,7 @@ Run RunTool(const std::string& args) {
 }
 
 TEST(SomasimMeshInfo, JsonHasTheSpecKeysInMetres) {
-  const Run run = RunTool("info --json --unit cm " + testing::SharedMesh("liver.msh"));
+  const ToolRun run = RunTool("info --json --unit cm " + testing::SharedMesh("liver.msh"));
   ASSERT_EQ(run.status, 0) << run.out;
   const nlohmann::json j = nlohmann::json::parse(run.out);
   for (const char* key : {"nodes", "tetrahedra", "triangles", "bbox_min", "bbox_max", "volume_m3",
@@ -58,14 +58,14 @@ TEST(SomasimMeshInfo, JsonHasTheSpecKeysInMetres) {
 }
 
 TEST(SomasimMeshInfo, TextNamesCountsAndUnit) {
-  const Run run = RunTool("info " + testing::SharedMesh("liver.msh") + " --unit cm");
+  const ToolRun run = RunTool("info " + testing::SharedMesh("liver.msh") + " --unit cm");
   ASSERT_EQ(run.status, 0) << run.out;
   EXPECT_NE(run.out.find("nodes 181"), std::string::npos) << run.out;
   EXPECT_NE(run.out.find("read as cm"), std::string::npos) << run.out;
 }
 
 TEST(SomasimMeshInfo, BrokenFileExitsThreeNamingFileAndFault) {
-  const Run run = RunTool("info " + testing::SharedMesh("6_tetra_bad.msh"));
+  const ToolRun run = RunTool("info " + testing::SharedMesh("6_tetra_bad.msh"));
   EXPECT_EQ(run.status, kExitBadInput) << run.out;
   EXPECT_NE(run.out.find("6_tetra_bad.msh:"), std::string::npos) << run.out;
   EXPECT_NE(run.out.find("duplicated"), std::string::npos) << run.out;
@@ -86,7 +86,7 @@ TEST(SomasimMesh, BadCommandLinesExitTwo) {
 
 TEST(SomasimMeshConvert, ConvertsBetweenFormatsKeepingTheMesh) {
   const std::string dir = testing::MakeTempDir("somasim-convert");
-  const Run run = RunTool("convert --unit cm " + testing::SharedMesh("liver.msh") + " " + dir +
+  const ToolRun run = RunTool("convert --unit cm " + testing::SharedMesh("liver.msh") + " " + dir +
                           "/liver.vtu --binary");
   ASSERT_EQ(run.status, 0) << run.out;
   mesh_io::ReadOptions cm;
@@ -94,7 +94,7 @@ TEST(SomasimMeshConvert, ConvertsBetweenFormatsKeepingTheMesh) {
   const mesh_io::MeshData original = mesh_io::ReadMeshFile(testing::SharedMesh("liver.msh"), cm);
   EXPECT_TRUE(testing::SameMesh(original, mesh_io::ReadMeshFile(dir + "/liver.vtu", {}), 0.0));
   // A surface format gets the boundary and says so.
-  const Run obj = RunTool("convert " + dir + "/liver.vtu " + dir + "/liver.obj");
+  const ToolRun obj = RunTool("convert " + dir + "/liver.vtu " + dir + "/liver.obj");
   ASSERT_EQ(obj.status, 0) << obj.out;
   EXPECT_NE(obj.out.find("boundary surface"), std::string::npos) << obj.out;
 }
@@ -105,10 +105,10 @@ TEST(SomasimMeshConvert, InvertedInputNeedsFixOrientation) {
   std::swap(box.tetrahedra(0, 2), box.tetrahedra(1, 2));
   // Write it unchecked through a format whose writer does not validate: ASCII VTU.
   mesh_io::WriteMeshFile(dir + "/bad.vtu", box, {});
-  const Run refused = RunTool("convert " + dir + "/bad.vtu " + dir + "/out.msh");
+  const ToolRun refused = RunTool("convert " + dir + "/bad.vtu " + dir + "/out.msh");
   EXPECT_EQ(refused.status, kExitBadInput) << refused.out;
   EXPECT_NE(refused.out.find("inverted"), std::string::npos) << refused.out;
-  const Run fixed = RunTool("convert --fix-orientation " + dir + "/bad.vtu " + dir + "/out.msh");
+  const ToolRun fixed = RunTool("convert --fix-orientation " + dir + "/bad.vtu " + dir + "/out.msh");
   EXPECT_EQ(fixed.status, 0) << fixed.out;
   EXPECT_EQ(mesh_io::ReadMeshFile(dir + "/out.msh", {}).tetrahedra.cols(), 6);
 }

@@ -109,6 +109,7 @@ TEST(MeshBuilder, UnitsScaleToMetres) {
 
 TEST(MeshBuilder, SkippedKindsAreCountedTogether) {
   MeshBuilder b("s", "test");
+  b.AddNode(0, 0, 0, {});
   b.Skip("line", 2);
   b.Skip("quad");
   b.Skip("line");

@@ -264,7 +264,7 @@ TEST(ObjReader, AcceptsCommentsBlankLinesAndTrailingContinuation) {
   const MeshData mesh =
       Read("# header\n\n   \nv 0 0 0 # origin\nv 1 0 0\nv 0 1 0\n#f 9 9 9\nf 1 2 3 \\");
   EXPECT_EQ(mesh.triangles.cols(), 1);
-  EXPECT_EQ(Read("").vertices.cols(), 0);
+  EXPECT_THROW(Read(""), MeshError);  // no nodes: never what a user meant to load
 }
 
 TEST(ObjReader, ReadsSofaLiver) {

@@ -240,9 +240,11 @@ TEST(StlReader, MergesOnlyExactlyEqualCorners) {
   EXPECT_EQ(mesh.triangles.col(2), Eigen::Vector3i(4, 2, 3));
 }
 
-TEST(StlReader, EmptyFiles) {
-  EXPECT_EQ(Read("solid empty\nendsolid empty\n").triangles.cols(), 0);
-  EXPECT_EQ(Read(BinaryStl("empty", {}, 0)).triangles.cols(), 0);
+// Well-formed but empty solids are refused: a mesh with no nodes is never what a user meant.
+TEST(StlReader, EmptySolidsAreRefused) {
+  EXPECT_NE(ErrorOf("solid empty\nendsolid empty\n").fault().find("holds no nodes"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf(BinaryStl("empty", {}, 0)).fault().find("holds no nodes"), std::string::npos);
 }
 
 TEST(StlReader, RefusesFilesThatAreNeitherBinaryNorAscii) {
