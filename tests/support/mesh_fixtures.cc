@@ -188,7 +188,7 @@ namespace {
                                                    const mesh_io::MeshData& a, double tolerance) {
   // Match by rounding coordinates to the tolerance grid, then check the exact distance.
   std::multimap<std::array<long long, 3>, int32_t> index;
-  const double cell = std::max(tolerance, 1e-300) * 4;
+  const double cell = std::max(4 * tolerance, 1e-9);  // [m]; keeps the keys far from overflow
   const auto key = [&](const Eigen::Vector3d& x) {
     return std::array<long long, 3>{std::llround(x[0] / cell), std::llround(x[1] / cell),
                                     std::llround(x[2] / cell)};
