@@ -10,7 +10,6 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
-#include <iomanip>
 #include <nlohmann/json.hpp>
 #include <ostream>
 #include <sstream>
@@ -302,12 +301,12 @@ int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out,
       f << WriteSmesh(surface);
       if (!f.good()) throw MeshError(MeshErrorKind::kIo, smesh, {}, "cannot write");
     }
-    std::ostringstream switches;
-    switches << std::setprecision(17) << "-pzQq" << options.radius_edge_ratio;
-    if (options.max_volume_m3 > 0) switches << "a" << options.max_volume_m3;
+    // -p mesh the surface (a PLC), -z 0-based output, -Q quiet, -q radius-edge bound, -a volume.
+    std::string switches = "-pzQq" + mesh_io::FormatDouble(options.radius_edge_ratio);
+    if (options.max_volume_m3 > 0) switches += "a" + mesh_io::FormatDouble(options.max_volume_m3);
     const std::string log = (dir / "tetgen.log").string();
     std::string error;
-    const int status = RunProgram({options.tetgen, switches.str(), smesh}, log, &error);
+    const int status = RunProgram({options.tetgen, switches, smesh}, log, &error);
     if (status != 0) {
       err << "somasim-mesh: tetgen failed on " << options.input << ": "
           << (status < 0 ? error : "exit status " + std::to_string(status)) << "\n"
@@ -318,13 +317,13 @@ int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out,
     mesh_io::ReadOptions tetgen_read;  // TetGen wrote metres, our own surface's unit
     MeshData volume = mesh_io::ReadMeshFile((dir / "surface.1.node").string(), tetgen_read);
     std::filesystem::remove_all(dir);
-    volume.format = "TetGen (" + switches.str() + ")";
+    volume.format = "TetGen (" + switches + ")";
     volume.triangles.resize(3, 0);  // keep the tetrahedra; the boundary follows from them
     const mesh_io::WriteReport report =
         mesh_io::WriteMeshFile(options.output, volume, options.write);
     const MeshSummary s = Summarise(volume);
     out << "wrote " << report.files << ": " << s.nodes << " nodes, " << s.tetrahedra
-        << " tetrahedra (tetgen " << switches.str() << "); volume " << s.volume_m3.value_or(0)
+        << " tetrahedra (tetgen " << switches << "); volume " << s.volume_m3.value_or(0)
         << " m^3 vs enclosed " << mesh::SurfaceEnclosedVolume(surface) << " m^3; min dihedral "
         << (s.quality ? s.quality->min_dihedral_deg : 0.0) << " deg\n";
     return kExitOk;
