@@ -42,7 +42,7 @@ struct MeshSummary {
   std::optional<double> volume_m3;  // tets' volume, or the enclosed volume of a closed surface
   double surface_area_m2 = 0.0;     // of the boundary (volume) or of the triangles (surface)
   int64_t boundary_triangles = 0;
-  mesh::SurfaceTopology topology;   // of the boundary surface or of the triangles
+  mesh::SurfaceTopology topology;               // of the boundary surface or of the triangles
   std::optional<mesh::QualitySummary> quality;  // volume meshes only
 };
 
@@ -53,8 +53,10 @@ MeshSummary Summarise(const MeshData& m) {
   s.triangles = m.triangles.cols();
   s.bbox = mesh::ComputeBoundingBox(m.vertices);
   std::vector<char> used(static_cast<size_t>(s.nodes), 0);
-  for (Eigen::Index i = 0; i < m.triangles.size(); ++i) used[static_cast<size_t>(m.triangles.data()[i])] = 1;
-  for (Eigen::Index i = 0; i < m.tetrahedra.size(); ++i) used[static_cast<size_t>(m.tetrahedra.data()[i])] = 1;
+  for (Eigen::Index i = 0; i < m.triangles.size(); ++i)
+    used[static_cast<size_t>(m.triangles.data()[i])] = 1;
+  for (Eigen::Index i = 0; i < m.tetrahedra.size(); ++i)
+    used[static_cast<size_t>(m.tetrahedra.data()[i])] = 1;
   for (char u : used) s.unreferenced_nodes += u ? 0 : 1;
 
   mesh::SurfaceMesh surface;
@@ -117,8 +119,7 @@ nlohmann::json ToJson(const std::string& file, const MeshData& m, const mesh_io:
 
 void PrintText(std::ostream& out, const std::string& file, const MeshData& m,
                const mesh_io::ReadOptions& ro, const MeshSummary& s) {
-  out << file << ": " << m.format << ", coordinates read as " << mesh_io::UnitName(ro.unit)
-      << "\n";
+  out << file << ": " << m.format << ", coordinates read as " << mesh_io::UnitName(ro.unit) << "\n";
   out << "  nodes " << s.nodes << ", tetrahedra " << s.tetrahedra << ", triangles " << s.triangles;
   if (s.unreferenced_nodes > 0) out << ", unreferenced nodes " << s.unreferenced_nodes;
   out << "\n";
@@ -254,8 +255,7 @@ int RunConvert(const ConvertOptions& options, std::ostream& out, std::ostream& e
   }
 }
 
-int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out,
-                      std::ostream& err) {
+int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out, std::ostream& err) {
   if (!(options.radius_edge_ratio > 1.0) || !std::isfinite(options.radius_edge_ratio)) {
     err << "somasim-mesh: --quality must be a radius-edge ratio > 1 (got "
         << options.radius_edge_ratio << ")\n";
@@ -273,17 +273,17 @@ int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out,
   }
   try {
     const MeshData in = mesh_io::ReadMeshFile(options.input, options.read);
-    mesh::SurfaceMesh surface =
-        in.tetrahedra.cols() > 0 ? mesh::ExtractBoundarySurface({in.vertices, in.tetrahedra})
-                                 : mesh::SurfaceMesh{in.vertices, in.triangles};
+    mesh::SurfaceMesh surface = in.tetrahedra.cols() > 0
+                                    ? mesh::ExtractBoundarySurface({in.vertices, in.tetrahedra})
+                                    : mesh::SurfaceMesh{in.vertices, in.triangles};
     surface = mesh::CompactSurface(surface, nullptr);
     const mesh::SurfaceTopology topo = mesh::AnalyseSurfaceTopology(surface);
     if (!topo.watertight || !topo.manifold) {
       err << "somasim-mesh: " << options.input
           << ": the surface is not closed and manifold, so it bounds no volume (boundary edges "
           << topo.num_boundary_edges << ", non-manifold edges " << topo.num_nonmanifold_edges
-          << ", non-manifold vertices " << topo.num_nonmanifold_vertices
-          << ", misoriented edges " << topo.num_misoriented_edges << ")\n";
+          << ", non-manifold vertices " << topo.num_nonmanifold_vertices << ", misoriented edges "
+          << topo.num_misoriented_edges << ")\n";
       return kExitTetrahedralize;
     }
     if (mesh::SurfaceEnclosedVolume(surface) < 0) {

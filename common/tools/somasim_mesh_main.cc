@@ -43,13 +43,15 @@ void AddWriteOptions(CLI::App* cmd, somasim::mesh_io::WriteOptions* write) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"somasim-mesh: inspect, convert and tetrahedralise mesh files (OBJ, STL, legacy "
-               "VTK, VTU, Gmsh .msh 1/2.2/4.1, TetGen .node/.ele/.face)"};
+  CLI::App app{
+      "somasim-mesh: inspect, convert and tetrahedralise mesh files (OBJ, STL, legacy "
+      "VTK, VTU, Gmsh .msh 1/2.2/4.1, TetGen .node/.ele/.face)"};
   app.require_subcommand(1);
 
   somasim::tools::InfoOptions info;
-  CLI::App* info_cmd = app.add_subcommand("info", "Counts, bounding box, volume, quality, "
-                                                  "watertightness of a mesh file");
+  CLI::App* info_cmd = app.add_subcommand("info",
+                                          "Counts, bounding box, volume, quality, "
+                                          "watertightness of a mesh file");
   info_cmd->add_option("file", info.file, "Mesh file")->required();
   info_cmd->add_flag("--json", info.json, "Print one JSON object");
   AddReadOptions(info_cmd, &info.read);
@@ -70,8 +72,9 @@ int main(int argc, char** argv) {
       ->required();
   tet_cmd->add_option("--quality", tet.radius_edge_ratio,
                       "Radius-edge ratio bound, > 1 (TetGen -q; default 1.414)");
-  tet_cmd->add_option("--max-volume", tet.max_volume_m3,
-                      "Largest tetrahedron volume in m^3 (TetGen -a; default none)");
+  tet_cmd->add_option(
+      "--max-volume", tet.max_volume_m3,
+      "Target largest tetrahedron volume in m^3 (TetGen -a, approximate; default none)");
   tet_cmd->add_option("--tetgen", tet.tetgen, "The tetgen program (default: tetgen on PATH)");
   AddReadOptions(tet_cmd, &tet.read);
   AddWriteOptions(tet_cmd, &tet.write);

@@ -87,7 +87,7 @@ TEST(SomasimMesh, BadCommandLinesExitTwo) {
 TEST(SomasimMeshConvert, ConvertsBetweenFormatsKeepingTheMesh) {
   const std::string dir = testing::MakeTempDir("somasim-convert");
   const ToolRun run = RunTool("convert --unit cm " + testing::SharedMesh("liver.msh") + " " + dir +
-                          "/liver.vtu --binary");
+                              "/liver.vtu --binary");
   ASSERT_EQ(run.status, 0) << run.out;
   mesh_io::ReadOptions cm;
   cm.unit = mesh_io::Unit::kCentimetre;
@@ -108,7 +108,8 @@ TEST(SomasimMeshConvert, InvertedInputNeedsFixOrientation) {
   const ToolRun refused = RunTool("convert " + dir + "/bad.vtu " + dir + "/out.msh");
   EXPECT_EQ(refused.status, kExitBadInput) << refused.out;
   EXPECT_NE(refused.out.find("inverted"), std::string::npos) << refused.out;
-  const ToolRun fixed = RunTool("convert --fix-orientation " + dir + "/bad.vtu " + dir + "/out.msh");
+  const ToolRun fixed =
+      RunTool("convert --fix-orientation " + dir + "/bad.vtu " + dir + "/out.msh");
   EXPECT_EQ(fixed.status, 0) << fixed.out;
   EXPECT_EQ(mesh_io::ReadMeshFile(dir + "/out.msh", {}).tetrahedra.cols(), 6);
 }
@@ -139,6 +140,30 @@ TEST(SomasimMeshTetrahedralize, FillsSofaLiverSurfaceWithPositiveTets) {
     EXPECT_NEAR(j["bbox_min"][k].get<double>(), surface.vertices.row(k).minCoeff(), 1e-12);
     EXPECT_NEAR(j["bbox_max"][k].get<double>(), surface.vertices.row(k).maxCoeff(), 1e-12);
   }
+}
+
+TEST(SomasimMeshTetrahedralize, MaxVolumeBoundsEveryTetrahedron) {
+  const std::string dir = testing::MakeTempDir("somasim-maxvol");
+  TetrahedralizeOptions options;
+  options.input = testing::SharedMesh("liver.obj");
+  options.read.unit = mesh_io::Unit::kCentimetre;
+  options.output = dir + "/liver.msh";
+  options.max_volume_m3 = 2e-8;  // the liver holds 3.66e-5 m^3: at least ~1800 tetrahedra
+  std::ostringstream out, err;
+  ASSERT_EQ(RunTetrahedralize(options, out, err), kExitOk) << err.str();
+  const mesh_io::MeshData volume = mesh_io::ReadMeshFile(options.output, {});
+  EXPECT_GT(volume.tetrahedra.cols(), 1800);
+  double largest = 0;
+  for (Eigen::Index t = 0; t < volume.tetrahedra.cols(); ++t) {
+    const Eigen::Vector3d a = volume.vertices.col(volume.tetrahedra(0, t));
+    const Eigen::Vector3d b = volume.vertices.col(volume.tetrahedra(1, t));
+    const Eigen::Vector3d c = volume.vertices.col(volume.tetrahedra(2, t));
+    const Eigen::Vector3d d = volume.vertices.col(volume.tetrahedra(3, t));
+    largest = std::max(largest, (b - a).dot((c - a).cross(d - a)) / 6);
+  }
+  // TetGen treats -a as a refinement target, not a hard cap: a few tets end slightly above it.
+  EXPECT_LE(largest, 2e-8 * 1.1);
+  EXPECT_NE(out.str().find("a2e-08"), std::string::npos) << out.str();
 }
 
 TEST(SomasimMeshTetrahedralize, OpenSurfaceIsRefusedBeforeRunningTetgen) {
