@@ -25,9 +25,12 @@ struct ToolRun {
 // Runs build/bin/somasim-mesh with arguments (quoted by the caller), stdout captured,
 // stderr appended to it.
 ToolRun RunTool(const std::string& args) {
-  const char* bin = std::getenv("SOMASIM_BIN_DIR");
-  const std::string command =
-      std::string(bin != nullptr ? bin : ".") + "/somasim-mesh " + args + " 2>&1";
+  // CTest sets SOMASIM_BIN_DIR; run by hand, the tool sits beside this test in build/bin.
+  const char* env = std::getenv("SOMASIM_BIN_DIR");
+  const std::string bin =
+      env != nullptr ? std::string(env)
+                     : std::filesystem::read_symlink("/proc/self/exe").parent_path().string();
+  const std::string command = bin + "/somasim-mesh " + args + " 2>&1";
   ToolRun run;
   FILE* pipe = popen(command.c_str(), "r");
   if (pipe == nullptr) return run;
