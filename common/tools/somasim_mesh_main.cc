@@ -40,9 +40,7 @@ void AddWriteOptions(CLI::App* cmd, somasim::mesh_io::WriteOptions* write) {
   cmd->add_flag("--big-endian", write->big_endian, "VTU binary data in big-endian byte order");
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
+int RunMain(int argc, char** argv) {
   CLI::App app{
       "somasim-mesh: inspect, convert and tetrahedralise mesh files (OBJ, STL, legacy "
       "VTK, VTU, Gmsh .msh 1/2.2/4.1, TetGen .node/.ele/.face)"};
@@ -99,4 +97,16 @@ int main(int argc, char** argv) {
     return somasim::tools::kExitInternal;
   }
   return somasim::tools::kExitUsage;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return RunMain(argc, argv);
+  } catch (...) {
+    // Nothing may escape main (CLI11's own set-up can throw); say so and fail.
+    std::cerr << "somasim-mesh: internal error\n";
+    return somasim::tools::kExitInternal;
+  }
 }

@@ -139,7 +139,7 @@ TEST(SomasimMeshTetrahedralize, FillsSofaLiverSurfaceWithPositiveTets) {
   const nlohmann::json j = nlohmann::json::parse(json.str());
   EXPECT_TRUE(j["watertight"].get<bool>());
   EXPECT_GT(j["min_dihedral_deg"].get<double>(), 0.0);
-  for (int k = 0; k < 3; ++k) {
+  for (size_t k = 0; k < 3; ++k) {
     EXPECT_NEAR(j["bbox_min"][k].get<double>(), surface.vertices.row(k).minCoeff(), 1e-12);
     EXPECT_NEAR(j["bbox_max"][k].get<double>(), surface.vertices.row(k).maxCoeff(), 1e-12);
   }
