@@ -1,5 +1,7 @@
 #include "common/mesh_io/base64.h"
 
+#include "common/mesh_io/text_reader.h"  // IsSpace
+
 namespace somasim::mesh_io {
 namespace {
 
@@ -13,10 +15,6 @@ int DigitValue(char c) {
   if (c == '+') return 62;
   if (c == '/') return 63;
   return -1;
-}
-
-bool IsSpace(char c) {
-  return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
 }
 
 std::string Shown(char c) {

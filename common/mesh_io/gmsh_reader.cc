@@ -16,21 +16,6 @@ namespace somasim::mesh_io {
 namespace gmsh_internal {
 namespace {
 
-bool IsSpace(char c) {
-  return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
-}
-
-void SplitTokens(std::string_view line, std::vector<std::string_view>* tokens) {
-  tokens->clear();
-  size_t i = 0;
-  while (i < line.size()) {
-    while (i < line.size() && IsSpace(line[i])) ++i;
-    const size_t start = i;
-    while (i < line.size() && !IsSpace(line[i])) ++i;
-    if (i > start) tokens->push_back(line.substr(start, i - start));
-  }
-}
-
 // Sections a mesh file may hold that carry no mesh: skipped up to their end marker.
 constexpr std::string_view kSkippedSections[] = {
     "$PhysicalNames",
@@ -281,6 +266,7 @@ void GmshReader::DataLine(const std::string& section, const std::string& items_s
                  "unexpected end of file in " + section + " after " + std::to_string(read) +
                      " of " + items_said + " (truncated file?)");
     }
+    tokens_.clear();
     SplitTokens(*line, &tokens_);
     if (tokens_.empty()) continue;
     if (tokens_[0].front() == '$') {
@@ -311,21 +297,11 @@ double GmshReader::SectionDouble(const std::string& section, const char* what) {
 }
 
 int64_t GmshReader::TokenInt(std::string_view token, std::string_view what) const {
-  int64_t value = 0;
-  if (!ParseInt64(token, &value)) {
-    in_.Fail(MeshErrorKind::kSyntax,
-             "expected an integer for " + std::string(what) + ", found " + QuoteToken(token));
-  }
-  return value;
+  return in_.IntOf(token, what);
 }
 
 double GmshReader::TokenDouble(std::string_view token, std::string_view what) const {
-  double value = 0.0;
-  if (!ParseDouble(token, &value)) {
-    in_.Fail(MeshErrorKind::kSyntax,
-             "expected a number for " + std::string(what) + ", found " + QuoteToken(token));
-  }
-  return value;
+  return in_.DoubleOf(token, what);
 }
 
 // A count on its own line (versions 1 and 2).
@@ -335,16 +311,20 @@ int64_t GmshReader::CountLine(const char* what) {
   return count;
 }
 
-void GmshReader::AddNodeId(int64_t id, int64_t where) {
-  if (id < 0)
-    FailAt(MeshErrorKind::kIndex, where, "node id " + std::to_string(id) + " is negative");
-  const int64_t first = nodes_.Add(id, where);
+void GmshReader::AddId(IdMap* ids, const char* what, int64_t id, int64_t where) {
+  if (id < 0) {
+    FailAt(MeshErrorKind::kIndex, where,
+           std::string(what) + " id " + std::to_string(id) + " is negative");
+  }
+  const int64_t first = ids->Add(id, where);
   if (first >= 0) {
     FailAt(MeshErrorKind::kIndex, where,
-           "node id " + std::to_string(id) + " is duplicated (first " +
-               Describe(nodes_.where(first)) + ")");
+           std::string(what) + " id " + std::to_string(id) + " is duplicated (first " +
+               Describe(ids->where(first)) + ")");
   }
 }
+
+void GmshReader::AddNodeId(int64_t id, int64_t where) { AddId(&nodes_, "node", id, where); }
 
 const ElementTypeInfo& GmshReader::ElementType(int64_t type, int64_t where) const {
   const ElementTypeInfo* info = FindElementType(type);
@@ -362,15 +342,7 @@ const ElementTypeInfo& GmshReader::ElementType(int64_t type, int64_t where) cons
 
 // One element whose node ids (the file's numbering) are in element_nodes_.
 void GmshReader::AddElement(int64_t id, const ElementTypeInfo& type, int64_t where) {
-  if (id < 0) {
-    FailAt(MeshErrorKind::kIndex, where, "element id " + std::to_string(id) + " is negative");
-  }
-  const int64_t first = elements_.Add(id, where);
-  if (first >= 0) {
-    FailAt(MeshErrorKind::kIndex, where,
-           "element id " + std::to_string(id) + " is duplicated (first " +
-               Describe(elements_.where(first)) + ")");
-  }
+  AddId(&elements_, "element", id, where);
   std::array<int64_t, 4> corners{};
   for (size_t k = 0; k < element_nodes_.size(); ++k) {
     const int64_t index = nodes_.Find(element_nodes_[k]);

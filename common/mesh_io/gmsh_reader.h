@@ -65,6 +65,8 @@ class GmshReader {
 
   // ----- Nodes and elements, whatever the version (gmsh_reader.cc)
 
+  // Records a node or element id (`what`) of the file, refusing a negative or repeated one.
+  void AddId(IdMap* ids, const char* what, int64_t id, int64_t where);
   void AddNodeId(int64_t id, int64_t where);
   const ElementTypeInfo& ElementType(int64_t type, int64_t where) const;
   void AddElement(int64_t id, const ElementTypeInfo& type, int64_t where);

@@ -27,19 +27,6 @@ constexpr std::string_view kIgnoredStatements[] = {
     "d_interp", "cstype", "deg",    "bmat", "step",       "curv2",     "parm",  "trim",
     "hole",     "scrv",   "sp",     "end",  "con"};
 
-bool IsSpace(char c) { return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f'; }
-
-// Appends the whitespace-separated tokens of `line` to `tokens` (views into the file's bytes).
-void Tokenize(std::string_view line, std::vector<std::string_view>* tokens) {
-  size_t i = 0;
-  while (i < line.size()) {
-    while (i < line.size() && IsSpace(line[i])) ++i;
-    const size_t start = i;
-    while (i < line.size() && !IsSpace(line[i])) ++i;
-    if (i > start) tokens->push_back(line.substr(start, i - start));
-  }
-}
-
 // One `f` statement, its corners resolved to 0-based vertex indices (not yet range-checked:
 // positive indices may refer to vertices defined further down the file).
 struct Polygon {
@@ -88,7 +75,7 @@ MeshData ObjParser::Parse(const ReadOptions& options) {
       while (!text.empty() && IsSpace(text.back())) text.remove_suffix(1);
       const bool continued = !text.empty() && text.back() == '\\';
       if (continued) text.remove_suffix(1);
-      Tokenize(text, &tokens);
+      SplitTokens(text, &tokens);
       if (!continued) break;
       line = reader_.TryLine();
       if (!line) break;

@@ -19,8 +19,6 @@
 namespace somasim::mesh_io {
 namespace {
 
-bool IsSpace(char c) { return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f'; }
-
 using Tokens = std::vector<std::string_view>;
 
 // One TetGen file read as lines of numbers; '#' starts a comment anywhere, blank lines are
@@ -37,13 +35,7 @@ class TetGenText {
       const size_t hash = text.find('#');
       if (hash != std::string_view::npos) text = text.substr(0, hash);
       tokens->clear();
-      size_t i = 0;
-      while (i < text.size()) {
-        while (i < text.size() && IsSpace(text[i])) ++i;
-        const size_t start = i;
-        while (i < text.size() && !IsSpace(text[i])) ++i;
-        if (i > start) tokens->push_back(text.substr(start, i - start));
-      }
+      SplitTokens(text, tokens);
       if (!tokens->empty()) return true;
     }
     line_ = reader_.line();
@@ -62,20 +54,10 @@ class TetGenText {
   }
 
   int64_t Int(std::string_view token, const std::string& what) const {
-    int64_t value = 0;
-    if (!ParseInt64(token, &value)) {
-      Fail(MeshErrorKind::kSyntax,
-           "expected an integer for " + what + ", found " + QuoteToken(token));
-    }
-    return value;
+    return reader_.IntOf(token, what, where());
   }
   double Double(std::string_view token, const std::string& what) const {
-    double value = 0.0;
-    if (!ParseDouble(token, &value)) {
-      Fail(MeshErrorKind::kSyntax,
-           "expected a number for " + what + ", found " + QuoteToken(token));
-    }
-    return value;
+    return reader_.DoubleOf(token, what, where());
   }
 
   // The header line: `min_fields` required numbers, up to `fields.size()` in all (TetGen gives

@@ -7,13 +7,20 @@
 #include <string>
 
 namespace somasim::mesh_io {
-namespace {
 
 bool IsSpace(char c) {
   return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
 }
 
-}  // namespace
+void SplitTokens(std::string_view text, std::vector<std::string_view>* tokens) {
+  size_t i = 0;
+  while (i < text.size()) {
+    while (i < text.size() && IsSpace(text[i])) ++i;
+    const size_t start = i;
+    while (i < text.size() && !IsSpace(text[i])) ++i;
+    if (i > start) tokens->push_back(text.substr(start, i - start));
+  }
+}
 
 std::string QuoteToken(std::string_view token) {
   constexpr size_t kMax = 40;
@@ -83,12 +90,14 @@ std::string_view TextReader::Token(std::string_view what) {
   return *token;
 }
 
-int64_t TextReader::Int(std::string_view what) {
-  const std::string_view token = Token(what);
+int64_t TextReader::Int(std::string_view what) { return IntOf(Token(what), what); }
+
+int64_t TextReader::IntOf(std::string_view token, std::string_view what,
+                          SourceLocation where) const {
   int64_t value = 0;
   if (!ParseInt64(token, &value)) {
-    Fail(MeshErrorKind::kSyntax,
-         "expected an integer for " + std::string(what) + ", found " + QuoteToken(token));
+    FailAt(MeshErrorKind::kSyntax, where,
+           "expected an integer for " + std::string(what) + ", found " + QuoteToken(token));
   }
   return value;
 }
@@ -102,12 +111,14 @@ int64_t TextReader::IntInRange(std::string_view what, int64_t lo, int64_t hi) {
   return value;
 }
 
-double TextReader::Double(std::string_view what) {
-  const std::string_view token = Token(what);
+double TextReader::Double(std::string_view what) { return DoubleOf(Token(what), what); }
+
+double TextReader::DoubleOf(std::string_view token, std::string_view what,
+                            SourceLocation where) const {
   double value = 0.0;
   if (!ParseDouble(token, &value)) {
-    Fail(MeshErrorKind::kSyntax,
-         "expected a number for " + std::string(what) + ", found " + QuoteToken(token));
+    FailAt(MeshErrorKind::kSyntax, where,
+           "expected a number for " + std::string(what) + ", found " + QuoteToken(token));
   }
   return value;
 }

@@ -5,10 +5,18 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "common/mesh_io/mesh_error.h"
 
 namespace somasim::mesh_io {
+
+// Whitespace as the text readers see it: ' ', '\t', '\n', '\r', '\v' and '\f' (those of the
+// C locale, independent of the locale actually set).
+bool IsSpace(char c);
+
+// Appends the whitespace-separated tokens of `text` to `tokens`, as views into `text`.
+void SplitTokens(std::string_view text, std::vector<std::string_view>* tokens);
 
 // Strict number parsing: the whole token must be the number (a leading '+' is accepted).
 // ParseDouble accepts "nan"/"inf" so that callers can name the non-finite value precisely.
@@ -34,6 +42,16 @@ class TextReader {
   double Double(std::string_view what);
   // Int() that must lie in [lo, hi].
   int64_t IntInRange(std::string_view what, int64_t lo, int64_t hi);
+  // A token already taken from this reader (e.g. out of a Line()) parsed as a number; fails
+  // naming `what` as Int() and Double() do, at the last token's line or at `where`.
+  int64_t IntOf(std::string_view token, std::string_view what) const {
+    return IntOf(token, what, token_location());
+  }
+  int64_t IntOf(std::string_view token, std::string_view what, SourceLocation where) const;
+  double DoubleOf(std::string_view token, std::string_view what) const {
+    return DoubleOf(token, what, token_location());
+  }
+  double DoubleOf(std::string_view token, std::string_view what, SourceLocation where) const;
 
   // The rest of the current line (without "\n" or "\r\n"); advances to the next line.
   // Fails at end of input.

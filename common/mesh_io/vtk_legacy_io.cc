@@ -6,6 +6,7 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <type_traits>
 #include <vector>
 
 #include "common/mesh_io/byte_reader.h"
@@ -42,6 +43,7 @@ int64_t ScalarBytes(Scalar s) {
       return 2;
     case Scalar::kUInt32:
     case Scalar::kInt32:
+    // NOLINTNEXTLINE(bugprone-branch-clone): for V = int64_t both float cases give 0
     case Scalar::kFloat32:
       return 4;
     case Scalar::kUInt64:
@@ -59,38 +61,11 @@ bool IsIntegral(Scalar s) {
   return s != Scalar::kFloat32 && s != Scalar::kFloat64 && s != Scalar::kString;
 }
 
-bool IsSpace(char c) {
-  return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
-}
-
 char ToUpper(char c) { return (c >= 'a' && c <= 'z') ? static_cast<char>(c - 'a' + 'A') : c; }
 
 std::string Upper(std::string_view s) {
   std::string out(s);
   for (char& c : out) c = ToUpper(c);
-  return out;
-}
-
-// A token shown in a message: clipped, with control and non-ASCII bytes replaced.
-std::string Quote(std::string_view token) {
-  constexpr size_t kMax = 40;
-  std::string shown(token.substr(0, kMax));
-  for (char& c : shown) {
-    if (static_cast<unsigned char>(c) < 0x20 || static_cast<unsigned char>(c) >= 0x7f) c = '?';
-  }
-  if (token.size() > kMax) shown += "...";
-  return "'" + shown + "'";
-}
-
-std::vector<std::string_view> Split(std::string_view line) {
-  std::vector<std::string_view> out;
-  size_t i = 0;
-  while (i < line.size()) {
-    while (i < line.size() && IsSpace(line[i])) ++i;
-    const size_t start = i;
-    while (i < line.size() && !IsSpace(line[i])) ++i;
-    if (i > start) out.push_back(line.substr(start, i - start));
-  }
   return out;
 }
 
@@ -226,11 +201,15 @@ class LegacyReader {
 
   void CheckCount(int64_t count, int64_t ascii_bytes_each, int64_t binary_bytes_each,
                   std::string_view what, SourceLocation where) const;
-  // Reads count numbers of the given type. `ints` must be an integral type.
-  std::vector<int64_t> ReadInts(Scalar type, int64_t count, const std::string& what,
-                                const KeywordLine& kw, std::vector<SourceLocation>* where);
-  std::vector<double> ReadReals(Scalar type, int64_t count, const std::string& what,
-                                const KeywordLine& kw, std::vector<SourceLocation>* where);
+  // Reads count numbers of the given type, as V = int64_t (`type` must be an integral type) or
+  // V = double (any numeric type).
+  template <typename V>
+  std::vector<V> ReadValues(Scalar type, int64_t count, const std::string& what,
+                            const KeywordLine& kw, std::vector<SourceLocation>* where);
+  template <typename V>
+  V AsciiValue(int64_t i, int64_t count, const std::string& what, const KeywordLine& kw);
+  template <typename V>
+  V BinaryValue(Scalar type, int64_t at, ByteReader* r, const std::string& what) const;
   void SkipValues(Scalar type, int64_t count, const std::string& what, const KeywordLine& kw);
   ByteReader BeginBinary(int64_t bytes, const std::string& what, const KeywordLine& kw);
   void EndBinary(size_t bytes);
@@ -269,7 +248,7 @@ KeywordLine LegacyReader::NextKeyword(std::string_view what) {
   kw.where = At(kw.offset);
   kw.keyword = Upper(token);
   const std::optional<std::string_view> rest = in_.TryLine();
-  if (rest) kw.args = Split(*rest);
+  if (rest) SplitTokens(*rest, &kw.args);
   return kw;
 }
 
@@ -287,7 +266,7 @@ int64_t LegacyReader::ArgInt(const KeywordLine& kw, size_t i, std::string_view w
   if (!ParseInt64(kw.args[i], &value)) {
     Fail(MeshErrorKind::kSyntax, kw.where,
          "expected an integer for " + std::string(what) + " on the " + kw.keyword +
-             " line, found " + Quote(kw.args[i]));
+             " line, found " + QuoteToken(kw.args[i]));
   }
   if (value < 0) {
     Fail(MeshErrorKind::kCount, kw.where,
@@ -304,7 +283,7 @@ Scalar LegacyReader::ArgType(const KeywordLine& kw, size_t i) const {
            "arrays of type 'variant' are not supported (" + kw.keyword + ")");
     }
     Fail(MeshErrorKind::kSyntax, kw.where,
-         "unknown data type " + Quote(kw.args[i]) + " on the " + kw.keyword + " line");
+         "unknown data type " + QuoteToken(kw.args[i]) + " on the " + kw.keyword + " line");
   }
   return *type;
 }
@@ -333,7 +312,7 @@ void LegacyReader::UnknownKeyword(const KeywordLine& kw, std::string_view expect
     if (right_after) ExplainBinaryMismatch(kw);
   }
   Fail(MeshErrorKind::kSyntax, kw.where,
-       "unknown keyword " + Quote(kw.keyword) + " (expected " + std::string(expected) + ")");
+       "unknown keyword " + QuoteToken(kw.keyword) + " (expected " + std::string(expected) + ")");
 }
 
 // A keyword was expected right after a block of binary data but something else is there: the
@@ -376,7 +355,7 @@ void LegacyReader::ExplainBinaryMismatch(const KeywordLine& kw) const {
              " bytes after the data starts: the count in " + block.section +
              " does not match the data";
   } else {
-    fault += "what follows those bytes is " + Quote(kw.keyword) +
+    fault += "what follows those bytes is " + QuoteToken(kw.keyword) +
              ", not a section keyword: the count in " + block.section + " does not match the data";
   }
   if (escapes > 0) {
@@ -428,31 +407,26 @@ T ReadBig(ByteReader* reader, std::string_view what) {
   return reader->Read<T>(Endian::kBig, what);
 }
 
-std::vector<int64_t> LegacyReader::ReadInts(Scalar type, int64_t count, const std::string& what,
-                                            const KeywordLine& kw,
-                                            std::vector<SourceLocation>* where) {
-  if (!IsIntegral(type) || type == Scalar::kBit) {
+template <typename V>
+std::vector<V> LegacyReader::ReadValues(Scalar type, int64_t count, const std::string& what,
+                                        const KeywordLine& kw, std::vector<SourceLocation>* where) {
+  constexpr bool kInts = std::is_same_v<V, int64_t>;
+  static_assert(kInts || std::is_same_v<V, double>);
+  if (kInts ? (!IsIntegral(type) || type == Scalar::kBit)
+            : (type == Scalar::kBit || type == Scalar::kString)) {
     Fail(MeshErrorKind::kSyntax, kw.where,
-         what + " must have an integer data type, not " + Quote(kw.args.back()));
+         what +
+             (kInts ? " must have an integer data type, not "
+                    : " must have a numeric data type, not ") +
+             QuoteToken(kw.args.back()));
   }
   CheckCount(count, 2, ScalarBytes(type), what, kw.where);
-  std::vector<int64_t> values;
+  std::vector<V> values;
   values.reserve(static_cast<size_t>(count));
   if (where) where->reserve(static_cast<size_t>(count));
   if (!binary_) {
     for (int64_t i = 0; i < count; ++i) {
-      const std::string_view token = in_.Token(what);
-      int64_t v = 0;
-      if (!ParseInt64(token, &v)) {
-        if (IsSectionKeyword(Upper(token))) {
-          Fail(MeshErrorKind::kCount, in_.token_location(),
-               kw.keyword + " announces " + std::to_string(count) + " " + what + " but only " +
-                   std::to_string(i) + " come before " + Upper(token));
-        }
-        Fail(MeshErrorKind::kSyntax, in_.token_location(),
-             "expected an integer for " + what + ", found " + Quote(token));
-      }
-      values.push_back(v);
+      values.push_back(AsciiValue<V>(i, count, what, kw));
       if (where) where->push_back(in_.token_location());
     }
     return values;
@@ -461,121 +435,80 @@ std::vector<int64_t> LegacyReader::ReadInts(Scalar type, int64_t count, const st
   ByteReader r = BeginBinary(bytes, what, kw);
   for (int64_t i = 0; i < count; ++i) {
     const int64_t at = r.file_offset();
-    int64_t v = 0;
-    switch (type) {
-      case Scalar::kUInt8:
-        v = ReadBig<uint8_t>(&r, what);
-        break;
-      case Scalar::kInt8:
-        v = ReadBig<int8_t>(&r, what);
-        break;
-      case Scalar::kUInt16:
-        v = ReadBig<uint16_t>(&r, what);
-        break;
-      case Scalar::kInt16:
-        v = ReadBig<int16_t>(&r, what);
-        break;
-      case Scalar::kUInt32:
-        v = ReadBig<uint32_t>(&r, what);
-        break;
-      case Scalar::kInt32:
-        v = ReadBig<int32_t>(&r, what);
-        break;
-      case Scalar::kUInt64: {
-        const uint64_t u = ReadBig<uint64_t>(&r, what);
-        if (u > static_cast<uint64_t>(std::numeric_limits<int64_t>::max())) {
-          Fail(MeshErrorKind::kIndex, SourceLocation::Byte(at),
-               what + " holds the value " + std::to_string(u) + ", too large for an index");
-        }
-        v = static_cast<int64_t>(u);
-        break;
-      }
-      case Scalar::kInt64:
-        v = ReadBig<int64_t>(&r, what);
-        break;
-      default:
-        break;
-    }
-    values.push_back(v);
+    values.push_back(BinaryValue<V>(type, at, &r, what));
     if (where) where->push_back(SourceLocation::Byte(at));
   }
   EndBinary(static_cast<size_t>(bytes));
   return values;
 }
 
-std::vector<double> LegacyReader::ReadReals(Scalar type, int64_t count, const std::string& what,
-                                            const KeywordLine& kw,
-                                            std::vector<SourceLocation>* where) {
-  if (type == Scalar::kBit || type == Scalar::kString) {
-    Fail(MeshErrorKind::kSyntax, kw.where,
-         what + " must have a numeric data type, not " + Quote(kw.args.back()));
+// The next ASCII token as the i-th of `count` values (int64_t or double). A section keyword in
+// its place means the count is wrong.
+template <typename V>
+V LegacyReader::AsciiValue(int64_t i, int64_t count, const std::string& what,
+                           const KeywordLine& kw) {
+  constexpr bool kInts = std::is_same_v<V, int64_t>;
+  const std::string_view token = in_.Token(what);
+  V v = 0;
+  bool parsed = false;
+  if constexpr (kInts) {
+    parsed = ParseInt64(token, &v);
+  } else {
+    parsed = ParseDouble(token, &v);
   }
-  CheckCount(count, 2, ScalarBytes(type), what, kw.where);
-  std::vector<double> values;
-  values.reserve(static_cast<size_t>(count));
-  if (where) where->reserve(static_cast<size_t>(count));
-  if (!binary_) {
-    for (int64_t i = 0; i < count; ++i) {
-      const std::string_view token = in_.Token(what);
-      double v = 0;
-      if (!ParseDouble(token, &v)) {
-        if (IsSectionKeyword(Upper(token))) {
-          Fail(MeshErrorKind::kCount, in_.token_location(),
-               kw.keyword + " announces " + std::to_string(count) + " " + what + " but only " +
-                   std::to_string(i) + " come before " + Upper(token));
+  if (!parsed) {
+    if (IsSectionKeyword(Upper(token))) {
+      Fail(MeshErrorKind::kCount, in_.token_location(),
+           kw.keyword + " announces " + std::to_string(count) + " " + what + " but only " +
+               std::to_string(i) + " come before " + Upper(token));
+    }
+    Fail(MeshErrorKind::kSyntax, in_.token_location(),
+         (kInts ? "expected an integer for " : "expected a number for ") + what + ", found " +
+             QuoteToken(token));
+  }
+  return v;
+}
+
+// One big-endian value at byte `at` as an int64_t or a double. As int64_t, an unsigned 64-bit
+// value beyond its range is refused, and floating types (refused by ReadValues) give 0.
+template <typename V>
+V LegacyReader::BinaryValue(Scalar type, int64_t at, ByteReader* r, const std::string& what) const {
+  switch (type) {
+    case Scalar::kUInt8:
+      return static_cast<V>(ReadBig<uint8_t>(r, what));
+    case Scalar::kInt8:
+      return static_cast<V>(ReadBig<int8_t>(r, what));
+    case Scalar::kUInt16:
+      return static_cast<V>(ReadBig<uint16_t>(r, what));
+    case Scalar::kInt16:
+      return static_cast<V>(ReadBig<int16_t>(r, what));
+    case Scalar::kUInt32:
+      return static_cast<V>(ReadBig<uint32_t>(r, what));
+    case Scalar::kInt32:
+      return static_cast<V>(ReadBig<int32_t>(r, what));
+    case Scalar::kUInt64: {
+      const uint64_t u = ReadBig<uint64_t>(r, what);
+      if constexpr (std::is_same_v<V, int64_t>) {
+        if (u > static_cast<uint64_t>(std::numeric_limits<int64_t>::max())) {
+          Fail(MeshErrorKind::kIndex, SourceLocation::Byte(at),
+               what + " holds the value " + std::to_string(u) + ", too large for an index");
         }
-        Fail(MeshErrorKind::kSyntax, in_.token_location(),
-             "expected a number for " + what + ", found " + Quote(token));
       }
-      values.push_back(v);
-      if (where) where->push_back(in_.token_location());
+      return static_cast<V>(u);
     }
-    return values;
+    case Scalar::kInt64:
+      return static_cast<V>(ReadBig<int64_t>(r, what));
+    case Scalar::kFloat32:
+    case Scalar::kFloat64:
+      if constexpr (std::is_same_v<V, double>) {
+        return type == Scalar::kFloat32 ? static_cast<double>(ReadBig<float>(r, what))
+                                        : ReadBig<double>(r, what);
+      }
+      break;
+    default:
+      break;
   }
-  const int64_t bytes = count * ScalarBytes(type);
-  ByteReader r = BeginBinary(bytes, what, kw);
-  for (int64_t i = 0; i < count; ++i) {
-    const int64_t at = r.file_offset();
-    double v = 0;
-    switch (type) {
-      case Scalar::kUInt8:
-        v = ReadBig<uint8_t>(&r, what);
-        break;
-      case Scalar::kInt8:
-        v = ReadBig<int8_t>(&r, what);
-        break;
-      case Scalar::kUInt16:
-        v = ReadBig<uint16_t>(&r, what);
-        break;
-      case Scalar::kInt16:
-        v = ReadBig<int16_t>(&r, what);
-        break;
-      case Scalar::kUInt32:
-        v = ReadBig<uint32_t>(&r, what);
-        break;
-      case Scalar::kInt32:
-        v = ReadBig<int32_t>(&r, what);
-        break;
-      case Scalar::kUInt64:
-        v = static_cast<double>(ReadBig<uint64_t>(&r, what));
-        break;
-      case Scalar::kInt64:
-        v = static_cast<double>(ReadBig<int64_t>(&r, what));
-        break;
-      case Scalar::kFloat32:
-        v = static_cast<double>(ReadBig<float>(&r, what));
-        break;
-      case Scalar::kFloat64:
-        v = ReadBig<double>(&r, what);
-        break;
-      default:
-        break;
-    }
-    values.push_back(v);
-    if (where) where->push_back(SourceLocation::Byte(at));
-  }
-  EndBinary(static_cast<size_t>(bytes));
-  return values;
+  return 0;
 }
 
 // Attribute data is not kept, but its size is checked so that a truncated or miscounted
@@ -625,19 +558,7 @@ void LegacyReader::SkipValues(Scalar type, int64_t count, const std::string& wha
   }
   if (!binary_) {
     CheckCount(count, 2, 0, what, kw.where);
-    for (int64_t i = 0; i < count; ++i) {
-      const std::string_view token = in_.Token(what);
-      double v = 0;
-      if (!ParseDouble(token, &v)) {
-        if (IsSectionKeyword(Upper(token))) {
-          Fail(MeshErrorKind::kCount, in_.token_location(),
-               kw.keyword + " announces " + std::to_string(count) + " " + what + " but only " +
-                   std::to_string(i) + " come before " + Upper(token));
-        }
-        Fail(MeshErrorKind::kSyntax, in_.token_location(),
-             "expected a number for " + what + ", found " + Quote(token));
-      }
-    }
+    for (int64_t i = 0; i < count; ++i) AsciiValue<double>(i, count, what, kw);
     return;
   }
   int64_t bytes = 0;
@@ -659,13 +580,13 @@ void LegacyReader::ReadPoints(const KeywordLine& kw) {
   const Scalar type = ArgType(kw, 1);
   if (type == Scalar::kBit || type == Scalar::kString) {
     Fail(MeshErrorKind::kSyntax, kw.where,
-         "POINTS must have a numeric data type, not " + Quote(kw.args[1]));
+         "POINTS must have a numeric data type, not " + QuoteToken(kw.args[1]));
   }
   CheckCount(n, 6, 3 * ScalarBytes(type), "points", kw.where);
   last_block_.section = "POINTS";
   last_block_.detail = std::to_string(n) + " points of " + std::string(kw.args[1]);
   std::vector<SourceLocation> where;
-  coords_ = ReadReals(type, 3 * n, "point coordinates", kw, &where);
+  coords_ = ReadValues<double>(type, 3 * n, "point coordinates", kw, &where);
   point_where_.reserve(static_cast<size_t>(n));
   for (size_t i = 0; i < where.size(); i += 3) point_where_.push_back(where[i]);
 }
@@ -692,7 +613,7 @@ Cells LegacyReader::ReadClassicCells(const KeywordLine& kw, int64_t n, int64_t s
   last_block_.detail = std::to_string(size) + " entries of int";
   std::vector<SourceLocation> where;
   const std::vector<int64_t> entries =
-      ReadInts(Scalar::kInt32, size, kw.keyword + " entries", kw, &where);
+      ReadValues<int64_t>(Scalar::kInt32, size, kw.keyword + " entries", kw, &where);
   Cells cells;
   cells.present = true;
   cells.start.reserve(static_cast<size_t>(n) + 1);
@@ -741,7 +662,7 @@ Cells LegacyReader::ReadOffsetCells(const KeywordLine& kw, int64_t n_offsets, in
   last_block_.detail = std::to_string(n_offsets) + " offsets of " + std::string(off.args[0]);
   std::vector<SourceLocation> where;
   const std::vector<int64_t> offsets =
-      ReadInts(off_type, n_offsets, kw.keyword + " offsets", off, &where);
+      ReadValues<int64_t>(off_type, n_offsets, kw.keyword + " offsets", off, &where);
   KeywordLine con = NextKeyword("CONNECTIVITY");
   while (con.keyword == "METADATA") {
     SkipMetadata(con);
@@ -756,7 +677,7 @@ Cells LegacyReader::ReadOffsetCells(const KeywordLine& kw, int64_t n_offsets, in
   last_block_.detail = std::to_string(n_conn) + " indices of " + std::string(con.args[0]);
   Cells cells;
   cells.present = true;
-  cells.conn = ReadInts(con_type, n_conn, kw.keyword + " connectivity", con, nullptr);
+  cells.conn = ReadValues<int64_t>(con_type, n_conn, kw.keyword + " connectivity", con, nullptr);
   if (offsets.empty()) {
     if (n_conn != 0) {
       Fail(MeshErrorKind::kCount, kw.where,
@@ -800,7 +721,7 @@ void LegacyReader::ReadCellTypes(const KeywordLine& kw) {
   const int64_t n = ArgInt(kw, 0, "cell count");
   last_block_.section = "CELL_TYPES";
   last_block_.detail = std::to_string(n) + " cell types of int";
-  types_ = ReadInts(Scalar::kInt32, n, "cell types", kw, &type_where_);
+  types_ = ReadValues<int64_t>(Scalar::kInt32, n, "cell types", kw, &type_where_);
 }
 
 // METADATA (VTK 8+) follows an array: COMPONENT_NAMES and INFORMATION lines, ended by an empty
@@ -809,7 +730,7 @@ void LegacyReader::SkipMetadata(const KeywordLine& kw) {
   ExpectArgs(kw, 0, 0, "METADATA");
   for (;;) {
     const std::string_view line = in_.Line("a METADATA block (it ends with an empty line)");
-    if (Split(line).empty()) return;
+    if (std::all_of(line.begin(), line.end(), IsSpace)) return;
   }
 }
 
@@ -826,7 +747,7 @@ void LegacyReader::SkipField(const KeywordLine& kw, int64_t tuples) {
     }
     if (array.keyword == "NULL_ARRAY") continue;
     const std::string name(in_.text().substr(array.offset, array.keyword.size()));
-    array.keyword = "FIELD array " + Quote(name);
+    array.keyword = "FIELD array " + QuoteToken(name);
     ExpectArgs(array, 3, 3, "<name> <components> <tuples> <data type>");
     const int64_t components = ArgInt(array, 0, "number of components");
     const int64_t n = ArgInt(array, 1, "number of tuples");
@@ -1025,23 +946,24 @@ MeshData LegacyReader::Read(const ReadOptions& options) {
   if (header.size() < kMagic.size() || Upper(header.substr(0, kMagic.size())) != kMagic) {
     Fail(MeshErrorKind::kSyntax, SourceLocation::Line(1),
          "not a legacy VTK file: the first line must be '# vtk DataFile Version x.y', found " +
-             Quote(header));
+             QuoteToken(header));
   }
-  const std::vector<std::string_view> version = Split(header.substr(kMagic.size()));
+  std::vector<std::string_view> version;
+  SplitTokens(header.substr(kMagic.size()), &version);
   in_.Line("the title line");
   const KeywordLine encoding = NextKeyword("ASCII or BINARY");
   if (encoding.keyword == "BINARY") {
     binary_ = true;
   } else if (encoding.keyword != "ASCII") {
     Fail(MeshErrorKind::kSyntax, encoding.where,
-         "the third line must say ASCII or BINARY, found " + Quote(encoding.keyword));
+         "the third line must say ASCII or BINARY, found " + QuoteToken(encoding.keyword));
   }
   ExpectArgs(encoding, 0, 0, encoding.keyword);
   const KeywordLine dataset = NextKeyword("DATASET");
   if (dataset.keyword != "DATASET") {
     Fail(MeshErrorKind::kSyntax, dataset.where,
          "expected 'DATASET <type>' after the " + encoding.keyword + " line, found " +
-             Quote(dataset.keyword));
+             QuoteToken(dataset.keyword));
   }
   ExpectArgs(dataset, 1, 1, "DATASET <type>");
   const std::string type = Upper(dataset.args[0]);
@@ -1055,7 +977,8 @@ MeshData LegacyReader::Read(const ReadOptions& options) {
                " is not supported: only POLYDATA and UNSTRUCTURED_GRID hold "
                "triangles or tetrahedra");
     }
-    Fail(MeshErrorKind::kSyntax, dataset.where, "unknown DATASET type " + Quote(dataset.args[0]));
+    Fail(MeshErrorKind::kSyntax, dataset.where,
+         "unknown DATASET type " + QuoteToken(dataset.args[0]));
   }
   const char* geometry_keywords =
       polydata_ ? "POINTS, VERTICES, LINES, POLYGONS, TRIANGLE_STRIPS, FIELD, POINT_DATA or "

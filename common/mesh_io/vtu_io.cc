@@ -80,20 +80,6 @@ bool IsIntegral(Scalar s) {
   return s != Scalar::kFloat32 && s != Scalar::kFloat64 && s != Scalar::kOther;
 }
 
-bool IsSpace(char c) {
-  return c == ' ' || c == '\t' || c == '\n' || c == '\r' || c == '\v' || c == '\f';
-}
-
-std::string Quote(std::string_view token) {
-  constexpr size_t kMax = 40;
-  std::string shown(token.substr(0, kMax));
-  for (char& c : shown) {
-    if (static_cast<unsigned char>(c) < 0x20 || static_cast<unsigned char>(c) >= 0x7f) c = '?';
-  }
-  if (token.size() > kMax) shown += "...";
-  return "'" + shown + "'";
-}
-
 // Range of an integral scalar, to refuse ASCII values that do not fit the declared type.
 void IntegralRange(Scalar s, int64_t* lo, int64_t* hi) {
   switch (s) {
@@ -267,7 +253,8 @@ int64_t VtuReader::CountAttribute(const pugi::xml_node& node, const char* name, 
   int64_t value = 0;
   if (!ParseInt64(attr.value(), &value)) {
     Fail(MeshErrorKind::kSyntax, NodeLine(node),
-         std::string(name) + " of <" + node.name() + "> is not an integer: " + Quote(attr.value()));
+         std::string(name) + " of <" + node.name() +
+             "> is not an integer: " + QuoteToken(attr.value()));
   }
   if (value < 0 || value > kMaxCount) {
     Fail(MeshErrorKind::kCount, NodeLine(node),
@@ -284,7 +271,7 @@ void VtuReader::CheckChildren(const pugi::xml_node& node,
       const std::string_view text = child.value();
       if (std::all_of(text.begin(), text.end(), IsSpace)) continue;
       Fail(MeshErrorKind::kSyntax, NodeLine(child),
-           std::string("unexpected text ") + Quote(text) + " inside <" + node.name() + ">");
+           std::string("unexpected text ") + QuoteToken(text) + " inside <" + node.name() + ">");
     }
     if (child.type() != pugi::node_element) continue;
     bool ok = false;
@@ -301,7 +288,7 @@ void VtuReader::ParseHeaderAttributes(const pugi::xml_node& root) {
   if (!type) Fail(MeshErrorKind::kSyntax, NodeLine(root), "<VTKFile> has no type attribute");
   if (std::strcmp(type.value(), "UnstructuredGrid") != 0) {
     Fail(MeshErrorKind::kUnsupported, NodeLine(root),
-         std::string("VTK XML files of type ") + Quote(type.value()) +
+         std::string("VTK XML files of type ") + QuoteToken(type.value()) +
              " are not supported: only UnstructuredGrid (.vtu) holds tetrahedra");
   }
   const std::string_view order = root.attribute("byte_order").as_string("LittleEndian");
@@ -309,21 +296,21 @@ void VtuReader::ParseHeaderAttributes(const pugi::xml_node& root) {
     endian_ = Endian::kBig;
   } else if (order != "LittleEndian") {
     Fail(MeshErrorKind::kSyntax, NodeLine(root),
-         "byte_order must be LittleEndian or BigEndian, not " + Quote(order));
+         "byte_order must be LittleEndian or BigEndian, not " + QuoteToken(order));
   }
   const std::string_view header = root.attribute("header_type").as_string("UInt32");
   if (header == "UInt64") {
     header_size_ = 8;
   } else if (header != "UInt32") {
     Fail(MeshErrorKind::kSyntax, NodeLine(root),
-         "header_type must be UInt32 or UInt64, not " + Quote(header));
+         "header_type must be UInt32 or UInt64, not " + QuoteToken(header));
   }
   const std::string_view compressor = root.attribute("compressor").as_string("");
   if (compressor == "vtkZLibDataCompressor") {
     zlib_ = true;
   } else if (!compressor.empty()) {
     Fail(MeshErrorKind::kUnsupported, NodeLine(root),
-         "compressor " + Quote(compressor) +
+         "compressor " + QuoteToken(compressor) +
              " is not supported (only vtkZLibDataCompressor); re-save the file uncompressed or "
              "with zlib");
   }
@@ -384,13 +371,14 @@ ArrayRef VtuReader::Inspect(const pugi::xml_node& node) {
   a.node = node;
   a.where = NodeLine(node);
   const std::string name = node.attribute("Name").as_string("");
-  a.label = "DataArray " + (name.empty() ? std::string("(unnamed)") : Quote(name)) + " (line " +
-            std::to_string(a.where.line) + ")";
+  a.label = "DataArray " + (name.empty() ? std::string("(unnamed)") : QuoteToken(name)) +
+            " (line " + std::to_string(a.where.line) + ")";
   const pugi::xml_attribute type = node.attribute("type");
   if (!type) Fail(MeshErrorKind::kSyntax, a.where, a.label + " has no type attribute");
   const std::optional<ScalarInfo> info = ParseScalar(type.value());
   if (!info) {
-    Fail(MeshErrorKind::kSyntax, a.where, a.label + " has unknown type " + Quote(type.value()));
+    Fail(MeshErrorKind::kSyntax, a.where,
+         a.label + " has unknown type " + QuoteToken(type.value()));
   }
   a.type = *info;
   a.type_name = type.value();
@@ -411,7 +399,7 @@ ArrayRef VtuReader::Inspect(const pugi::xml_node& node) {
     a.format = Format::kAppended;
   } else {
     Fail(MeshErrorKind::kSyntax, a.where,
-         a.label + " has format " + Quote(format) + "; expected ascii, binary or appended");
+         a.label + " has format " + QuoteToken(format) + "; expected ascii, binary or appended");
   }
   // The text of the element; VTK may put <InformationKey> elements before it.
   for (const pugi::xml_node& child : node.children()) {
@@ -634,7 +622,7 @@ void VtuReader::DecodeAscii(const ArrayRef& a, bool want_ints, Values* out,
         int64_t v = 0;
         if (!ParseInt64(token, &v)) {
           Fail(MeshErrorKind::kSyntax, SourceLocation::Line(line),
-               a.label + ": expected an integer (" + a.type_name + "), found " + Quote(token));
+               a.label + ": expected an integer (" + a.type_name + "), found " + QuoteToken(token));
         }
         if (v < lo || v > hi) {
           Fail(MeshErrorKind::kSyntax, SourceLocation::Line(line),
@@ -649,7 +637,7 @@ void VtuReader::DecodeAscii(const ArrayRef& a, bool want_ints, Values* out,
         double v = 0;
         if (!ParseDouble(token, &v)) {
           Fail(MeshErrorKind::kSyntax, SourceLocation::Line(line),
-               a.label + ": expected a number, found " + Quote(token));
+               a.label + ": expected a number, found " + QuoteToken(token));
         }
         if (!want_ints) out->reals.push_back(v);
       }
@@ -688,7 +676,7 @@ Values VtuReader::Decode(const ArrayRef& a, bool want_ints) {
     double dv = 0;
     switch (a.type.scalar) {
       case Scalar::kInt8:
-        iv = r.Read<int8_t>(endian_, what);
+        iv = r.Read<int8_t>(endian_, what);  // NOLINT(bugprone-signed-char-misuse): Int8 is signed
         break;
       case Scalar::kUInt8:
         iv = r.Read<uint8_t>(endian_, what);
@@ -835,12 +823,12 @@ void VtuReader::ReadPiece(const pugi::xml_node& piece, int piece_index, MeshBuil
           continue;
         }
         Fail(MeshErrorKind::kSyntax, NodeLine(node),
-             "unknown DataArray " + Quote(name) +
+             "unknown DataArray " + QuoteToken(name) +
                  " in <Cells> (expected connectivity, offsets and types)");
       }
       if (*slot) {
         Fail(MeshErrorKind::kSyntax, NodeLine(node),
-             "a second DataArray " + Quote(name) + " in <Cells>");
+             "a second DataArray " + QuoteToken(name) + " in <Cells>");
       }
       *slot = Inspect(node);
     }
@@ -1018,7 +1006,7 @@ MeshData VtuReader::Read(const ReadOptions& options) {
       appended_base64_ = true;
     } else if (encoding != "raw") {
       Fail(MeshErrorKind::kSyntax, appended ? NodeLine(appended) : NodeLine(root),
-           "<AppendedData> must have encoding=\"raw\" or \"base64\", not " + Quote(encoding));
+           "<AppendedData> must have encoding=\"raw\" or \"base64\", not " + QuoteToken(encoding));
     }
   }
   pugi::xml_node grid;

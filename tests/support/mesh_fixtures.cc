@@ -140,6 +140,24 @@ void WriteBytes(const std::string& path, const std::string& bytes) {
   EXPECT_TRUE(out.good()) << "cannot write " << path;
 }
 
+bool Contains(std::string_view text, std::string_view part) {
+  return text.find(part) != std::string_view::npos;
+}
+
+std::string Replace(std::string text, std::string_view from, std::string_view to) {
+  const size_t pos = text.find(from);
+  EXPECT_NE(pos, std::string::npos) << "'" << from << "' not found";
+  if (pos != std::string::npos) text.replace(pos, from.size(), to);
+  return text;
+}
+
+int64_t SkippedCount(const mesh_io::MeshData& mesh, std::string_view type) {
+  for (const mesh_io::SkippedElements& s : mesh.skipped) {
+    if (s.type == type) return s.count;
+  }
+  return 0;
+}
+
 namespace {
 
 ::testing::AssertionResult SameElements(const mesh_io::MeshData& e, const mesh_io::MeshData& a,

@@ -1,12 +1,17 @@
-// Small meshes built in code, paths of the real meshes in shared/data/meshes, and comparisons,
-// for the tests of common/mesh and common/mesh_io.
+// Small meshes built in code, paths of the real meshes in shared/data/meshes, comparisons, and
+// the helpers the format tests share (the error a read throws, text edits), for the tests of
+// common/mesh and common/mesh_io.
 #pragma once
 
 #include <gtest/gtest.h>
 
+#include <cstdint>
 #include <string>
+#include <string_view>
+#include <utility>
 
 #include "common/mesh_io/mesh_data.h"
+#include "common/mesh_io/mesh_error.h"
 
 namespace somasim::testing {
 
@@ -30,6 +35,26 @@ std::string MakeTempDir(const std::string& prefix);
 // Whole file as bytes; fails the test (and returns "") when unreadable.
 std::string Slurp(const std::string& path);
 void WriteBytes(const std::string& path, const std::string& bytes);
+
+// The MeshError that calling `read` throws. When it throws none, fails the test (showing the
+// start of `input`, what was read, when given) and returns a placeholder kIo error.
+template <typename F>
+mesh_io::MeshError ErrorFrom(F&& read, std::string_view input = {}) {
+  try {
+    std::forward<F>(read)();
+  } catch (const mesh_io::MeshError& e) {
+    return e;
+  }
+  ADD_FAILURE() << "no MeshError" << (input.empty() ? "" : " for:\n") << input.substr(0, 400);
+  return mesh_io::MeshError(mesh_io::MeshErrorKind::kIo, "", {}, "none");
+}
+
+// Whether `part` occurs in `text`.
+bool Contains(std::string_view text, std::string_view part);
+// `text` with the first occurrence of `from` replaced by `to`; fails the test when absent.
+std::string Replace(std::string text, std::string_view from, std::string_view to);
+// How many elements of `type` the mesh lists as skipped (0 when none).
+int64_t SkippedCount(const mesh_io::MeshData& mesh, std::string_view type);
 
 // Same topology (identical index arrays) and coordinates equal to `tolerance` (absolute, m).
 ::testing::AssertionResult SameMesh(const mesh_io::MeshData& expected,

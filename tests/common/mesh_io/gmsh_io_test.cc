@@ -20,7 +20,10 @@ namespace {
 
 using ::somasim::testing::BoxSurface;
 using ::somasim::testing::BoxTets;
+using ::somasim::testing::Contains;
+using ::somasim::testing::ErrorFrom;
 using ::somasim::testing::RegularTet;
+using ::somasim::testing::Replace;
 using ::somasim::testing::SameMesh;
 using ::somasim::testing::SharedMesh;
 using ::somasim::testing::Slurp;
@@ -47,25 +50,7 @@ MeshData Read(std::string_view bytes, const ReadOptions& options = {}) {
 
 // The MeshError that reading `bytes` throws; fails the test when it reads.
 MeshError ReadError(std::string_view bytes, const ReadOptions& options = {}) {
-  try {
-    Read(bytes, options);
-  } catch (const MeshError& e) {
-    return e;
-  }
-  ADD_FAILURE() << "read without error:\n" << bytes.substr(0, 400);
-  return MeshError(MeshErrorKind::kIo, "", {}, "no error");
-}
-
-// `text` with the first occurrence of `from` replaced; fails the test when absent.
-std::string Replace(std::string text, std::string_view from, std::string_view to) {
-  const size_t pos = text.find(from);
-  EXPECT_NE(pos, std::string::npos) << "'" << from << "' not found";
-  if (pos != std::string::npos) text.replace(pos, from.size(), to);
-  return text;
-}
-
-bool Contains(const std::string& text, std::string_view part) {
-  return text.find(part) != std::string::npos;
+  return ErrorFrom([&] { Read(bytes, options); }, bytes);
 }
 
 #define EXPECT_FAULT(error, expected_kind, part)                          \

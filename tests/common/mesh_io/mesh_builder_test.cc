@@ -4,6 +4,8 @@
 
 #include <limits>
 
+#include "tests/support/mesh_fixtures.h"
+
 namespace somasim::mesh_io {
 namespace {
 
@@ -19,13 +21,7 @@ MeshBuilder CornerTet(int a, int b, int c, int d) {
 }
 
 MeshErrorKind KindOf(MeshBuilder builder, const ReadOptions& options = {}) {
-  try {
-    builder.Finish(options);
-  } catch (const MeshError& e) {
-    return e.kind();
-  }
-  ADD_FAILURE() << "no error";
-  return MeshErrorKind::kIo;
+  return ::somasim::testing::ErrorFrom([&] { builder.Finish(options); }).kind();
 }
 
 TEST(MeshBuilder, PositiveTetIsKept) {

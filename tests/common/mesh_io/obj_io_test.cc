@@ -18,6 +18,7 @@ namespace {
 
 using ::somasim::testing::BoxSurface;
 using ::somasim::testing::BoxTets;
+using ::somasim::testing::ErrorFrom;
 using ::somasim::testing::SameMesh;
 using ::somasim::testing::SharedMesh;
 using ::somasim::testing::Slurp;
@@ -30,13 +31,7 @@ MeshData Read(std::string_view text, const ReadOptions& options = {}) {
 
 // The error reading `text` raises (fails the test when there is none).
 MeshError ErrorOf(std::string_view text, const ReadOptions& options = {}) {
-  try {
-    Read(text, options);
-  } catch (const MeshError& e) {
-    return e;
-  }
-  ADD_FAILURE() << "no MeshError for:\n" << text;
-  return MeshError(MeshErrorKind::kIo, "", {}, "none");
+  return ErrorFrom([&] { Read(text, options); }, text);
 }
 
 MeshData WithoutTets(MeshData mesh) {

@@ -17,7 +17,7 @@ struct Target {
   std::string name;       // test label
   std::string extension;  // chooses the format
   WriteOptions options;
-  bool float32 = false;   // coordinates stored as float32
+  bool float32 = false;  // coordinates stored as float32
   bool surface_only = false;
   bool renumbers = false;  // STL: nodes come back in order of first appearance
 };
@@ -25,7 +25,9 @@ struct Target {
 std::vector<Target> AllTargets() {
   std::vector<Target> t;
   const auto add = [&](std::string name, std::string ext, WriteOptions o, bool f32, bool surf,
-                       bool renum) { t.push_back({std::move(name), std::move(ext), o, f32, surf, renum}); };
+                       bool renum) {
+    t.push_back({std::move(name), std::move(ext), o, f32, surf, renum});
+  };
   WriteOptions ascii, binary;
   binary.encoding = Encoding::kBinary;
   add("obj", ".obj", ascii, false, true, false);
@@ -60,9 +62,9 @@ std::vector<Target> AllTargets() {
 // without unreferenced nodes.
 MeshData SurfaceView(const MeshData& m) {
   MeshData s;
-  mesh::SurfaceMesh surface =
-      m.tetrahedra.cols() > 0 ? mesh::ExtractBoundarySurface({m.vertices, m.tetrahedra})
-                              : mesh::SurfaceMesh{m.vertices, m.triangles};
+  mesh::SurfaceMesh surface = m.tetrahedra.cols() > 0
+                                  ? mesh::ExtractBoundarySurface({m.vertices, m.tetrahedra})
+                                  : mesh::SurfaceMesh{m.vertices, m.triangles};
   surface = mesh::CompactSurface(surface, nullptr);
   s.vertices = surface.vertices;
   s.triangles = surface.triangles;

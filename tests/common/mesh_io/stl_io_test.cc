@@ -23,6 +23,7 @@ namespace {
 
 using ::somasim::testing::BoxSurface;
 using ::somasim::testing::BoxTets;
+using ::somasim::testing::ErrorFrom;
 using ::somasim::testing::SameMesh;
 using ::somasim::testing::SameMeshUpToVertexOrder;
 using ::somasim::testing::Slurp;
@@ -34,13 +35,7 @@ MeshData Read(std::string_view bytes, const ReadOptions& options = {}) {
 }
 
 MeshError ErrorOf(std::string_view bytes) {
-  try {
-    Read(bytes);
-  } catch (const MeshError& e) {
-    return e;
-  }
-  ADD_FAILURE() << "no MeshError";
-  return MeshError(MeshErrorKind::kIo, "", {}, "none");
+  return ErrorFrom([&] { Read(bytes); }, bytes);
 }
 
 // The boundary surface of a box whose sides are not binary fractions, without unused vertices.

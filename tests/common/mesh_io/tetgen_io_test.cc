@@ -22,6 +22,7 @@ namespace {
 
 using ::somasim::testing::BoxSurface;
 using ::somasim::testing::BoxTets;
+using ::somasim::testing::ErrorFrom;
 using ::somasim::testing::RegularTet;
 using ::somasim::testing::SameMesh;
 using ::somasim::testing::Slurp;
@@ -59,16 +60,8 @@ Files Sample(const std::string& base) {
 }
 
 MeshError ErrorOf(const Files& f, const ReadOptions& options = {}) {
-  try {
-    Read(f, options);
-  } catch (const MeshError& e) {
-    return e;
-  }
-  ADD_FAILURE() << "no MeshError for:\n"
-                << f.node << "\n--\n"
-                << f.ele.value_or("") << "\n--\n"
-                << f.face.value_or("");
-  return MeshError(MeshErrorKind::kIo, "", {}, "none");
+  return ErrorFrom([&] { Read(f, options); },
+                   f.node + "\n--\n" + f.ele.value_or("") + "\n--\n" + f.face.value_or(""));
 }
 
 // Rows of numbers of a TetGen file's data lines (header excluded), comments dropped.
@@ -239,7 +232,7 @@ TEST(TetGenReader, EveryDetectableTruncationIsRefused) {
       }
     }
   };
-  check(full.node, [&](std::string s) { return Files{s, full.ele, full.face}; });
+  check(full.node, [&](const std::string& s) { return Files{s, full.ele, full.face}; });
   check(*full.ele, [&](std::string s) { return Files{full.node, s, full.face}; });
   check(*full.face, [&](std::string s) { return Files{full.node, full.ele, s}; });
 }

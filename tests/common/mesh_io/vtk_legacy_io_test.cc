@@ -19,8 +19,11 @@ namespace {
 
 using ::somasim::testing::BoxSurface;
 using ::somasim::testing::BoxTets;
+using ::somasim::testing::Contains;
+using ::somasim::testing::ErrorFrom;
 using ::somasim::testing::SameMesh;
 using ::somasim::testing::SharedMesh;
+using ::somasim::testing::SkippedCount;
 using ::somasim::testing::Slurp;
 using ::somasim::testing::SquarePatch;
 using ::somasim::testing::TestData;
@@ -30,24 +33,7 @@ MeshData Read(std::string_view bytes, const ReadOptions& options = {}) {
 }
 
 MeshError ErrorOf(std::string_view bytes, const ReadOptions& options = {}) {
-  try {
-    Read(bytes, options);
-  } catch (const MeshError& e) {
-    return e;
-  }
-  ADD_FAILURE() << "no MeshError";
-  return MeshError(MeshErrorKind::kIo, "", {}, "none");
-}
-
-bool Contains(const std::string& text, const std::string& part) {
-  return text.find(part) != std::string::npos;
-}
-
-int64_t SkippedCount(const MeshData& m, const std::string& type) {
-  for (const SkippedElements& s : m.skipped) {
-    if (s.type == type) return s.count;
-  }
-  return 0;
+  return ErrorFrom([&] { Read(bytes, options); }, bytes);
 }
 
 constexpr const char* kHeader = "# vtk DataFile Version 3.0\ntest\nASCII\n";

@@ -21,8 +21,12 @@ namespace {
 
 using ::somasim::testing::BoxSurface;
 using ::somasim::testing::BoxTets;
+using ::somasim::testing::Contains;
+using ::somasim::testing::ErrorFrom;
+using ::somasim::testing::Replace;
 using ::somasim::testing::SameMesh;
 using ::somasim::testing::SharedMesh;
+using ::somasim::testing::SkippedCount;
 using ::somasim::testing::Slurp;
 using ::somasim::testing::SquarePatch;
 using ::somasim::testing::TestData;
@@ -32,31 +36,7 @@ MeshData Read(std::string_view bytes, const ReadOptions& options = {}) {
 }
 
 MeshError ErrorOf(std::string_view bytes, const ReadOptions& options = {}) {
-  try {
-    Read(bytes, options);
-  } catch (const MeshError& e) {
-    return e;
-  }
-  ADD_FAILURE() << "no MeshError";
-  return MeshError(MeshErrorKind::kIo, "", {}, "none");
-}
-
-bool Contains(const std::string& text, const std::string& part) {
-  return text.find(part) != std::string::npos;
-}
-
-int64_t SkippedCount(const MeshData& m, const std::string& type) {
-  for (const SkippedElements& s : m.skipped) {
-    if (s.type == type) return s.count;
-  }
-  return 0;
-}
-
-std::string Replace(std::string text, const std::string& from, const std::string& to) {
-  const size_t at = text.find(from);
-  EXPECT_NE(at, std::string::npos) << from;
-  if (at != std::string::npos) text.replace(at, from.size(), to);
-  return text;
+  return ErrorFrom([&] { Read(bytes, options); }, bytes);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -633,7 +613,8 @@ TEST(Base64, DecodesConcatenatedPaddedStreamsAndSkipsWhitespace) {
 // ---------------------------------------------------------------------------------------------
 // Real files
 
-::testing::AssertionResult BoxIs(const MeshData& m, Eigen::Vector3d lo, Eigen::Vector3d hi) {
+::testing::AssertionResult BoxIs(const MeshData& m, const Eigen::Vector3d& lo,
+                                 const Eigen::Vector3d& hi) {
   const Eigen::Vector3d a = m.vertices.rowwise().minCoeff(), b = m.vertices.rowwise().maxCoeff();
   if ((a - lo).cwiseAbs().maxCoeff() > 1e-5 || (b - hi).cwiseAbs().maxCoeff() > 1e-5) {
     return ::testing::AssertionFailure()
