@@ -4,9 +4,11 @@
 #include <sys/wait.h>
 
 #include <array>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
+#include <limits>
 #include <nlohmann/json.hpp>
 #include <sstream>
 
@@ -140,8 +142,10 @@ TEST(SomasimMeshTetrahedralize, FillsSofaLiverSurfaceWithPositiveTets) {
   EXPECT_TRUE(j["watertight"].get<bool>());
   EXPECT_GT(j["min_dihedral_deg"].get<double>(), 0.0);
   for (size_t k = 0; k < 3; ++k) {
-    EXPECT_NEAR(j["bbox_min"][k].get<double>(), surface.vertices.row(k).minCoeff(), 1e-12);
-    EXPECT_NEAR(j["bbox_max"][k].get<double>(), surface.vertices.row(k).maxCoeff(), 1e-12);
+    EXPECT_NEAR(j["bbox_min"][k].get<double>(),
+                surface.vertices.row(static_cast<Eigen::Index>(k)).minCoeff(), 1e-12);
+    EXPECT_NEAR(j["bbox_max"][k].get<double>(),
+                surface.vertices.row(static_cast<Eigen::Index>(k)).maxCoeff(), 1e-12);
   }
 }
 
@@ -167,6 +171,24 @@ TEST(SomasimMeshTetrahedralize, MaxVolumeBoundsEveryTetrahedron) {
   // TetGen treats -a as a refinement target, not a hard cap: a few tets end slightly above it.
   EXPECT_LE(largest, 2e-8 * 1.1);
   EXPECT_NE(out.str().find("a2e-08"), std::string::npos) << out.str();
+}
+
+TEST(SomasimMeshTetrahedralize, BadBoundsAreUsageErrors) {
+  TetrahedralizeOptions options;
+  options.input = testing::SharedMesh("liver.obj");
+  options.output = testing::MakeTempDir("somasim-bounds") + "/out.vtu";
+  options.tetgen = "/nonexistent/tetgen";  // must not get that far
+  std::ostringstream out, err;
+  for (double ratio : {1.0, 0.5, -2.0, std::nan(""), std::numeric_limits<double>::infinity()}) {
+    options.radius_edge_ratio = ratio;
+    EXPECT_EQ(RunTetrahedralize(options, out, err), kExitUsage) << ratio;
+  }
+  options.radius_edge_ratio = 1.414;
+  for (double volume : {-1e-9, std::nan(""), std::numeric_limits<double>::infinity()}) {
+    options.max_volume_m3 = volume;
+    EXPECT_EQ(RunTetrahedralize(options, out, err), kExitUsage) << volume;
+  }
+  EXPECT_EQ(RunTool("tetrahedralize x.obj y.vtu --quality abc").status, kExitUsage);
 }
 
 TEST(SomasimMeshTetrahedralize, OpenSurfaceIsRefusedBeforeRunningTetgen) {
