@@ -109,6 +109,14 @@ mesh_io::MeshData RegularTet(double edge) {
   return m;
 }
 
+std::string DamageBytes(const std::string& bytes, int changes, std::mt19937* rng) {
+  std::string damaged = bytes;
+  std::uniform_int_distribution<size_t> pos(0, bytes.size() - 1);
+  std::uniform_int_distribution<int> value(0, 255);
+  for (int k = 0; k < changes; ++k) damaged[pos(*rng)] = static_cast<char>(value(*rng));
+  return damaged;
+}
+
 std::string SharedMesh(const std::string& name) {
   return std::string(SOMASIM_SHARED_DIR) + "/data/meshes/" + name;
 }

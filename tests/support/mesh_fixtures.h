@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <cstdint>
+#include <random>
 #include <string>
 #include <string_view>
 #include <utility>
@@ -25,6 +26,10 @@ mesh_io::MeshData BoxSurface(int nx, int ny, int nz);
 mesh_io::MeshData SquarePatch(int n);
 // A regular tetrahedron with edge length `edge` [m].
 mesh_io::MeshData RegularTet(double edge = 1.0);
+
+// A copy of `bytes` with `changes` randomly chosen bytes set to random values (the damage loop of
+// the readers' "only MeshError comes out" tests). `bytes` must not be empty.
+std::string DamageBytes(const std::string& bytes, int changes, std::mt19937* rng);
 
 // Absolute path of shared/data/meshes/<name>.
 std::string SharedMesh(const std::string& name);

@@ -100,13 +100,9 @@ TEST(ObjReader, TruncationNeverCrashesAndYieldsAPrefix) {
 TEST(ObjReader, RandomByteDamageOnlyRaisesMeshError) {
   const std::string text = WriteObj(BoxSurface(2, 1, 1));
   std::mt19937 rng(42);
-  std::uniform_int_distribution<size_t> pos(0, text.size() - 1);
-  std::uniform_int_distribution<int> byte(0, 255);
   for (int trial = 0; trial < 3000; ++trial) {
-    std::string damaged = text;
-    for (int k = 0; k < 1 + trial % 4; ++k) damaged[pos(rng)] = static_cast<char>(byte(rng));
     try {
-      Read(damaged);
+      Read(testing::DamageBytes(text, 1 + trial % 4, &rng));
     } catch (const MeshError&) {
     }
   }

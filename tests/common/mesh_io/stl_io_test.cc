@@ -184,13 +184,9 @@ TEST(StlReader, RandomByteDamageOnlyRaisesMeshError) {
   for (Encoding encoding : {Encoding::kAscii, Encoding::kBinary}) {
     const std::string bytes = WriteStl(BoxSurface(2, 1, 1), encoding);
     std::mt19937 rng(7);
-    std::uniform_int_distribution<size_t> pos(0, bytes.size() - 1);
-    std::uniform_int_distribution<int> byte(0, 255);
     for (int trial = 0; trial < 3000; ++trial) {
-      std::string damaged = bytes;
-      for (int k = 0; k < 1 + trial % 4; ++k) damaged[pos(rng)] = static_cast<char>(byte(rng));
       try {
-        Read(damaged);
+        Read(testing::DamageBytes(bytes, 1 + trial % 4, &rng));
       } catch (const MeshError&) {
       }
     }

@@ -240,14 +240,12 @@ TEST(TetGenReader, EveryDetectableTruncationIsRefused) {
 TEST(TetGenReader, RandomByteDamageOnlyRaisesMeshError) {
   const Files full = FromWritten(WriteTetGen(BoxTets(2, 1, 1)));
   std::mt19937 rng(11);
-  std::uniform_int_distribution<int> byte(0, 255);
   for (int trial = 0; trial < 3000; ++trial) {
     Files damaged = full;
     std::string& target = trial % 3 == 0   ? damaged.node
                           : trial % 3 == 1 ? *damaged.ele
                                            : *damaged.face;
-    std::uniform_int_distribution<size_t> pos(0, target.size() - 1);
-    for (int k = 0; k < 1 + trial % 4; ++k) target[pos(rng)] = static_cast<char>(byte(rng));
+    target = testing::DamageBytes(target, 1 + trial % 4, &rng);
     try {
       Read(damaged);
     } catch (const MeshError&) {
