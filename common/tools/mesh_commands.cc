@@ -18,6 +18,7 @@
 #include "common/mesh/geometry.h"
 #include "common/mesh/quality.h"
 #include "common/mesh/topology.h"
+#include "common/mesh_gen/builtin_organs.h"
 #include "common/mesh_io/byte_reader.h"
 #include "common/mesh_io/tetgen_io.h"
 
@@ -218,9 +219,106 @@ std::string WriteSmesh(const mesh::SurfaceMesh& s) {
 
 }  // namespace
 
+mesh_io::MeshData LoadMesh(const std::string& path, const mesh_io::ReadOptions& read) {
+  if (!path.starts_with(kBuiltinPrefix)) return mesh_io::ReadMeshFile(path, read);
+  const std::string name = path.substr(kBuiltinPrefix.size());
+  if (mesh_gen::FindBuiltinOrgan(name) == nullptr) {
+    throw MeshError(MeshErrorKind::kIo, path, {},
+                    "no built-in organ called \"" + name + "\" (the built-in organs are " +
+                        mesh_gen::BuiltinOrganNames() + ")");
+  }
+  if (read.unit != mesh_io::Unit::kMetre) {
+    throw MeshError(MeshErrorKind::kValue, path, {},
+                    "built-in organs are generated in metres; --unit does not apply to them");
+  }
+  mesh_gen::BuiltinOrgan organ = mesh_gen::GenerateBuiltinOrgan(name);
+  MeshData m;
+  if (organ.spec->kind == mesh_gen::OrganKind::kVolume) {
+    m.vertices = std::move(organ.volume.vertices);
+    m.tetrahedra = std::move(organ.volume.tetrahedra);
+  } else {
+    m.vertices = std::move(organ.surface.vertices);
+    m.triangles = std::move(organ.surface.triangles);
+  }
+  m.format = "built-in organ " + std::string(organ.spec->name) + " (" +
+             mesh_gen::OrganKindName(organ.spec->kind) + ")";
+  return m;
+}
+
+int RunList(const ListOptions& options, std::ostream& out, std::ostream& /*err*/) {
+  if (options.json) {
+    nlohmann::json list = nlohmann::json::array();
+    for (const mesh_gen::BuiltinOrganSpec& spec : mesh_gen::BuiltinOrganSpecs()) {
+      const bool volume = spec.kind == mesh_gen::OrganKind::kVolume;
+      nlohmann::json j;
+      j["name"] = spec.name;
+      j["alias"] = spec.alias;
+      j["kind"] = mesh_gen::OrganKindName(spec.kind);
+      j["nodes"] = spec.num_nodes;
+      j[volume ? "tetrahedra" : "triangles"] = spec.num_elements;
+      j["target_nodes"] = spec.target_nodes;
+      j[volume ? "target_tetrahedra" : "target_triangles"] = spec.target_elements;
+      j["source"] = spec.source;
+      j["description"] = spec.description;
+      list.push_back(j);
+    }
+    out << list.dump(2) << "\n";
+    return kExitOk;
+  }
+  out << "built-in organs (use as builtin:NAME wherever a mesh file is expected):\n";
+  for (const mesh_gen::BuiltinOrganSpec& spec : mesh_gen::BuiltinOrganSpecs()) {
+    const bool volume = spec.kind == mesh_gen::OrganKind::kVolume;
+    std::string name(spec.name);
+    if (!spec.alias.empty()) name += " (" + std::string(spec.alias) + ")";
+    std::ostringstream line;
+    line << "  " << name;
+    for (size_t pad = name.size(); pad < 24; ++pad) line << ' ';
+    line << spec.num_nodes << (volume ? " nodes / " : " vertices / ") << spec.num_elements
+         << (volume ? " tetrahedra" : " triangles") << ", " << mesh_gen::OrganKindName(spec.kind)
+         << ": " << spec.description << " [" << spec.source << "]";
+    out << line.str() << "\n";
+  }
+  return kExitOk;
+}
+
+int RunGenerate(const GenerateOptions& options, std::ostream& out, std::ostream& err) {
+  const mesh_gen::BuiltinOrganSpec* spec = mesh_gen::FindBuiltinOrgan(options.name);
+  if (spec == nullptr) {
+    err << "somasim-mesh: no built-in organ called \"" << options.name
+        << "\"; the built-in organs are " << mesh_gen::BuiltinOrganNames() << "\n";
+    return kExitUsage;
+  }
+  if (!mesh_io::FormatFromPath(options.output)) {
+    err << "somasim-mesh: " << options.output
+        << ": unknown output format (use .obj .stl .vtk .vtu .msh .node)\n";
+    return kExitUsage;
+  }
+  try {
+    MeshData m = LoadMesh(std::string(kBuiltinPrefix) + std::string(spec->name), {});
+    if (options.surface && m.tetrahedra.cols() > 0) {
+      const mesh::SurfaceMesh boundary =
+          mesh::CompactSurface(mesh::ExtractBoundarySurface({m.vertices, m.tetrahedra}), nullptr);
+      m.vertices = boundary.vertices;
+      m.triangles = boundary.triangles;
+      m.tetrahedra.resize(4, 0);
+    }
+    const mesh_io::WriteReport report = mesh_io::WriteMeshFile(options.output, m, options.write);
+    out << "wrote " << report.files << ": " << spec->name << ", " << m.vertices.cols() << " nodes, "
+        << m.tetrahedra.cols() << " tetrahedra, " << m.triangles.cols() << " triangles (in "
+        << mesh_io::UnitName(options.write.unit) << ")\n";
+    if (report.wrote_boundary_surface) {
+      out << "note: the output format holds no tetrahedra; wrote the boundary surface\n";
+    }
+    return kExitOk;
+  } catch (const MeshError& e) {
+    err << "somasim-mesh: " << e.what() << "\n";
+    return ExitCodeFor(e);
+  }
+}
+
 int RunInfo(const InfoOptions& options, std::ostream& out, std::ostream& err) {
   try {
-    const MeshData m = mesh_io::ReadMeshFile(options.file, options.read);
+    const MeshData m = LoadMesh(options.file, options.read);
     const MeshSummary s = Summarise(m);
     if (options.json) {
       out << ToJson(options.file, m, options.read, s).dump(2) << "\n";
@@ -236,7 +334,7 @@ int RunInfo(const InfoOptions& options, std::ostream& out, std::ostream& err) {
 
 int RunConvert(const ConvertOptions& options, std::ostream& out, std::ostream& err) {
   try {
-    const MeshData m = mesh_io::ReadMeshFile(options.input, options.read);
+    const MeshData m = LoadMesh(options.input, options.read);
     const mesh_io::WriteReport report = mesh_io::WriteMeshFile(options.output, m, options.write);
     out << "wrote " << report.files << ": " << m.vertices.cols() << " nodes, "
         << m.tetrahedra.cols() << " tetrahedra, " << m.triangles.cols() << " triangles ("
@@ -273,7 +371,7 @@ int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out, s
     return kExitUsage;
   }
   try {
-    const MeshData in = mesh_io::ReadMeshFile(options.input, options.read);
+    const MeshData in = LoadMesh(options.input, options.read);
     mesh::SurfaceMesh surface = in.tetrahedra.cols() > 0
                                     ? mesh::ExtractBoundarySurface({in.vertices, in.tetrahedra})
                                     : mesh::SurfaceMesh{in.vertices, in.triangles};

@@ -5,6 +5,7 @@
 #include <iosfwd>
 #include <optional>
 #include <string>
+#include <string_view>
 
 #include "common/mesh_io/mesh_io.h"
 
@@ -41,7 +42,28 @@ struct TetrahedralizeOptions {
   std::string tetgen = "tetgen";     // the TetGen program (AGPL: run, never linked)
 };
 
+struct ListOptions {
+  bool json = false;
+};
+
+struct GenerateOptions {
+  std::string name;    // a built-in organ or its alias (somasim-mesh list)
+  std::string output;  // any supported format
+  mesh_io::WriteOptions write;
+  bool surface = false;  // write a volume organ's boundary surface instead of its tetrahedra
+};
+
+// The prefix that names a built-in organ wherever a mesh file is expected: "builtin:liver".
+inline constexpr std::string_view kBuiltinPrefix = "builtin:";
+
+// Reads a mesh file, or generates the built-in organ for "builtin:NAME" (always in metres, so
+// a unit other than metres is refused). Throws mesh_io::MeshError: kIo for an unknown organ or an
+// unreadable file, other kinds for a malformed file.
+mesh_io::MeshData LoadMesh(const std::string& path, const mesh_io::ReadOptions& read);
+
 int RunInfo(const InfoOptions& options, std::ostream& out, std::ostream& err);
+int RunList(const ListOptions& options, std::ostream& out, std::ostream& err);
+int RunGenerate(const GenerateOptions& options, std::ostream& out, std::ostream& err);
 int RunConvert(const ConvertOptions& options, std::ostream& out, std::ostream& err);
 int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out, std::ostream& err);
 

@@ -6,8 +6,10 @@
 #include <exception>
 #include <iostream>
 #include <map>
+#include <tuple>
 
 #include "common/tools/mesh_commands.h"
+#include "common/tools/render_command.h"
 
 namespace {
 
@@ -43,7 +45,8 @@ void AddWriteOptions(CLI::App* cmd, somasim::mesh_io::WriteOptions* write) {
 int RunMain(int argc, char** argv) {
   CLI::App app{
       "somasim-mesh: inspect, convert and tetrahedralise mesh files (OBJ, STL, legacy "
-      "VTK, VTU, Gmsh .msh 1/2.2/4.1, TetGen .node/.ele/.face)"};
+      "VTK, VTU, Gmsh .msh 1/2.2/4.1, TetGen .node/.ele/.face) and generate the built-in "
+      "organs. Wherever a mesh file is expected, builtin:NAME names a built-in organ."};
   app.require_subcommand(1);
 
   somasim::tools::InfoOptions info;
@@ -77,6 +80,36 @@ int RunMain(int argc, char** argv) {
   AddReadOptions(tet_cmd, &tet.read);
   AddWriteOptions(tet_cmd, &tet.write);
 
+  somasim::tools::ListOptions list;
+  CLI::App* list_cmd =
+      app.add_subcommand("list", "The built-in organs with their node and element counts");
+  list_cmd->add_flag("--json", list.json, "Print a JSON array");
+
+  somasim::tools::GenerateOptions generate;
+  CLI::App* generate_cmd = app.add_subcommand(
+      "generate", "Write a built-in organ in any supported format (chosen by the extension)");
+  generate_cmd->add_option("name", generate.name, "Built-in organ (see: somasim-mesh list)")
+      ->required();
+  generate_cmd->add_option("output", generate.output, "Output mesh file")->required();
+  generate_cmd->add_flag("--surface", generate.surface,
+                         "Write a volume organ's boundary surface instead of its tetrahedra");
+  AddWriteOptions(generate_cmd, &generate.write);
+
+  somasim::tools::RenderCommandOptions render;
+  std::string render_size, render_view, render_up;
+  bool render_no_edges = false;
+  CLI::App* render_cmd = app.add_subcommand(
+      "render", "Draw a mesh to a PNG picture (software rendering, no display needed)");
+  render_cmd->add_option("input", render.input, "Mesh file or builtin:NAME")->required();
+  render_cmd->add_option("output", render.output, "PNG file to write")->required();
+  render_cmd->add_option("--size", render_size, "Picture size WIDTHxHEIGHT (default 800x600)");
+  render_cmd->add_option("--view", render_view,
+                         "Viewing direction x,y,z, from the camera towards the mesh; write "
+                         "--view=-1,0,-1 when it starts with a minus");
+  render_cmd->add_option("--up", render_up, "Direction shown upwards x,y,z (default 0,1,0)");
+  render_cmd->add_flag("--no-edges", render_no_edges, "Do not draw the triangle edges");
+  AddReadOptions(render_cmd, &render.read);
+
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
@@ -92,6 +125,32 @@ int RunMain(int argc, char** argv) {
     if (*info_cmd) return somasim::tools::RunInfo(info, std::cout, std::cerr);
     if (*convert_cmd) return somasim::tools::RunConvert(convert, std::cout, std::cerr);
     if (*tet_cmd) return somasim::tools::RunTetrahedralize(tet, std::cout, std::cerr);
+    if (*render_cmd) {
+      if (!render_size.empty()) {
+        const auto size = somasim::tools::ParseImageSize(render_size);
+        if (!size) {
+          std::cerr << "somasim-mesh: --size must look like 800x600 (got \"" << render_size
+                    << "\")\n";
+          return somasim::tools::kExitUsage;
+        }
+        render.width = size->first;
+        render.height = size->second;
+      }
+      for (const auto& [text, target, name] : {std::tuple{&render_view, &render.view, "--view"},
+                                               std::tuple{&render_up, &render.up, "--up"}}) {
+        if (text->empty()) continue;
+        *target = somasim::tools::ParseVector3(*text);
+        if (!*target) {
+          std::cerr << "somasim-mesh: " << name << " must be three numbers x,y,z (got \"" << *text
+                    << "\")\n";
+          return somasim::tools::kExitUsage;
+        }
+      }
+      render.edges = !render_no_edges;
+      return somasim::tools::RunRender(render, std::cout, std::cerr);
+    }
+    if (*list_cmd) return somasim::tools::RunList(list, std::cout, std::cerr);
+    if (*generate_cmd) return somasim::tools::RunGenerate(generate, std::cout, std::cerr);
   } catch (const std::exception& e) {
     std::cerr << "somasim-mesh: internal error: " << e.what() << "\n";
     return somasim::tools::kExitInternal;

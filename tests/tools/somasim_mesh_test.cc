@@ -1,5 +1,5 @@
-// somasim-mesh: what `info`, `convert` and `tetrahedralize` print and return, in-process and
-// through the real executable (exit codes, JSON keys of SPEC §6).
+// somasim-mesh: what `info`, `convert`, `tetrahedralize`, `list` and `generate` print and
+// return, in-process and through the real executable (exit codes, JSON keys of SPEC §6).
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
@@ -12,6 +12,7 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "common/mesh/topology.h"
 #include "common/mesh_io/mesh_io.h"
 #include "common/tools/mesh_commands.h"
 #include "tests/support/mesh_fixtures.h"
@@ -215,6 +216,95 @@ TEST(SomasimMeshTetrahedralize, MissingTetgenProgramIsReported) {
   EXPECT_NE(err.str().find("/nonexistent/tetgen"), std::string::npos) << err.str();
   options.output = dir + "/out.obj";  // cannot hold tetrahedra
   EXPECT_EQ(RunTetrahedralize(options, out, err), kExitUsage);
+}
+
+}  // namespace
+}  // namespace somasim::tools
+
+namespace somasim::tools {
+namespace {
+
+TEST(SomasimMeshList, PrintsEveryOrganWithItsCounts) {
+  const ToolRun run = RunTool("list");
+  ASSERT_EQ(run.status, 0) << run.out;
+  for (const char* line :
+       {"liver4055 (liver)", "4055 nodes / 19403 tetrahedra", "liver288", "kidney424", "plate192",
+        "192 nodes / 392 tetrahedra", "tissue45", "45 vertices / 66 triangles", "spleen600",
+        "600 vertices / 1196", "kidney2000", "gallbladder5400 (gallbladder)", "beam19k"}) {
+    EXPECT_NE(run.out.find(line), std::string::npos) << line << "\n" << run.out;
+  }
+  const ToolRun json = RunTool("list --json");
+  ASSERT_EQ(json.status, 0) << json.out;
+  const nlohmann::json j = nlohmann::json::parse(json.out);
+  ASSERT_EQ(j.size(), 9u);
+  EXPECT_EQ(j[0]["name"], "liver4055");
+  EXPECT_EQ(j[0]["alias"], "liver");
+  EXPECT_EQ(j[0]["target_tetrahedra"], 9126);
+  EXPECT_EQ(j[5]["triangles"], 1196);
+}
+
+TEST(SomasimMeshInfo, BuiltinOrganIsReportedLikeAFile) {
+  const ToolRun run = RunTool("info builtin:liver288 --json");
+  ASSERT_EQ(run.status, 0) << run.out;
+  const nlohmann::json j = nlohmann::json::parse(run.out);
+  EXPECT_EQ(j["nodes"], 288);
+  EXPECT_EQ(j["tetrahedra"], 1019);
+  EXPECT_TRUE(j["watertight"].get<bool>());
+  EXPECT_GE(j["min_dihedral_deg"].get<double>(), 10.0);
+  EXPECT_NE(j["format"].get<std::string>().find("built-in"), std::string::npos);
+}
+
+TEST(SomasimMeshInfo, UnknownBuiltinExitsFourListingTheNames) {
+  const ToolRun run = RunTool("info builtin:heart");
+  EXPECT_EQ(run.status, kExitIo) << run.out;
+  EXPECT_NE(run.out.find("heart"), std::string::npos) << run.out;
+  EXPECT_NE(run.out.find("kidney424"), std::string::npos) << run.out;
+  // Built-in organs are in metres: another unit is refused, not silently applied.
+  EXPECT_EQ(RunTool("info builtin:plate192 --unit mm").status, kExitBadInput);
+}
+
+TEST(SomasimMeshGenerate, WritesEveryFormatThatReadsBackTheSameMesh) {
+  const std::string dir = testing::MakeTempDir("somasim-generate");
+  const mesh_io::MeshData organ = LoadMesh("builtin:kidney424", {});
+  for (const char* name : {"k.vtu", "k.vtk", "k.msh", "k.node"}) {
+    const ToolRun run = RunTool("generate kidney424 " + dir + "/" + name);
+    ASSERT_EQ(run.status, 0) << name << ": " << run.out;
+    EXPECT_TRUE(testing::SameMesh(organ, mesh_io::ReadMeshFile(dir + "/" + name, {}), 0.0)) << name;
+  }
+  // Surface formats and --surface get the boundary; surface organs write their triangles.
+  ASSERT_EQ(RunTool("generate kidney424 " + dir + "/k.obj").status, 0);
+  const mesh_io::MeshData obj = mesh_io::ReadMeshFile(dir + "/k.obj", {});
+  EXPECT_EQ(obj.triangles.cols(),
+            mesh::ExtractBoundarySurface({organ.vertices, organ.tetrahedra}).triangles.cols());
+  ASSERT_EQ(RunTool("generate kidney424 --surface " + dir + "/ks.vtu").status, 0);
+  const mesh_io::MeshData surface = mesh_io::ReadMeshFile(dir + "/ks.vtu", {});
+  EXPECT_EQ(surface.tetrahedra.cols(), 0);
+  EXPECT_EQ(surface.triangles.cols(), obj.triangles.cols());
+  ASSERT_EQ(RunTool("generate tissue45 " + dir + "/t.stl --out-unit mm").status, 0);
+  mesh_io::ReadOptions mm;
+  mm.unit = mesh_io::Unit::kMillimetre;
+  EXPECT_EQ(mesh_io::ReadMeshFile(dir + "/t.stl", mm).triangles.cols(), 66);
+}
+
+TEST(SomasimMeshGenerate, BadNamesAndOutputsExitTwo) {
+  const std::string dir = testing::MakeTempDir("somasim-generate-bad");
+  const ToolRun unknown = RunTool("generate heart " + dir + "/h.vtu");
+  EXPECT_EQ(unknown.status, kExitUsage) << unknown.out;
+  EXPECT_NE(unknown.out.find("liver4055 (liver)"), std::string::npos) << unknown.out;
+  EXPECT_EQ(RunTool("generate liver " + dir + "/h.xyz").status, kExitUsage);
+  EXPECT_EQ(RunTool("generate liver").status, kExitUsage);
+  EXPECT_EQ(RunTool("generate liver /nonexistent/dir/l.vtu").status, kExitIo);
+}
+
+TEST(SomasimMeshTetrahedralize, SurfaceOrganIsTetrahedralisedOnRequest) {
+  const std::string dir = testing::MakeTempDir("somasim-tet-builtin");
+  const ToolRun run = RunTool("tetrahedralize builtin:spleen600 " + dir + "/spleen.vtu");
+  ASSERT_EQ(run.status, 0) << run.out;
+  const mesh_io::MeshData volume = mesh_io::ReadMeshFile(dir + "/spleen.vtu", {});
+  EXPECT_GT(volume.tetrahedra.cols(), 1196);
+  const mesh::SurfaceMesh boundary = mesh::CompactSurface(
+      mesh::ExtractBoundarySurface({volume.vertices, volume.tetrahedra}), nullptr);
+  EXPECT_TRUE(mesh::AnalyseSurfaceTopology(boundary).watertight);
 }
 
 }  // namespace
