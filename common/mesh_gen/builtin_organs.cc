@@ -134,4 +134,33 @@ BuiltinOrgan GenerateBuiltinOrgan(std::string_view name) {
   return organ;
 }
 
+mesh::TetMesh GenerateBuiltinOrganVolume(std::string_view name) {
+  BuiltinOrgan organ = GenerateBuiltinOrgan(name);
+  switch (organ.spec->kind) {
+    case OrganKind::kVolume:
+      return std::move(organ.volume);
+    case OrganKind::kOpenSurface:
+      throw std::invalid_argument("built-in organ " + std::string(organ.spec->name) +
+                                  " is an open surface patch: it bounds no volume");
+    case OrganKind::kClosedSurface:
+      break;
+  }
+  // Mean edge length of the surface organ: every edge is shared by two triangles.
+  double edge_sum = 0.0;
+  const mesh::SurfaceMesh& surface = organ.surface;
+  for (Eigen::Index t = 0; t < surface.triangles.cols(); ++t) {
+    for (int c = 0; c < 3; ++c) {
+      edge_sum += (surface.vertices.col(surface.triangles(c, t)) -
+                   surface.vertices.col(surface.triangles((c + 1) % 3, t)))
+                      .norm();
+    }
+  }
+  const double mean_edge = edge_sum / (3.0 * static_cast<double>(surface.triangles.cols()));
+  const std::string_view n = organ.spec->name;
+  const OrganShape shape = n == "spleen600"    ? OrganShape::kSpleen
+                           : n == "kidney2000" ? OrganShape::kKidney
+                                               : OrganShape::kGallbladder;
+  return Stuff(shape, 1.5 * mean_edge, Vector3d::Zero());
+}
+
 }  // namespace somasim::mesh_gen

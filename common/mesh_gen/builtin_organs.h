@@ -66,4 +66,11 @@ struct BuiltinOrgan {
 // when the name is unknown.
 BuiltinOrgan GenerateBuiltinOrgan(std::string_view name);
 
+// A volume mesh of the organ `name`, for volume models: a volume organ's own tetrahedra, or a
+// closed surface organ's shape filled by isosurface stuffing with a lattice spacing of 1.5× the
+// surface's mean edge length, so its dihedral angles are >= 10.7° (its boundary is a new
+// triangulation of the same shape, not the surface organ's triangles). Throws
+// std::invalid_argument for an unknown name or the open patch, which bounds no volume.
+mesh::TetMesh GenerateBuiltinOrganVolume(std::string_view name);
+
 }  // namespace somasim::mesh_gen

