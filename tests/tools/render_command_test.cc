@@ -52,7 +52,7 @@ std::pair<uint32_t, uint32_t> PngSize(const std::string& bytes) {
 
 // A small volume mesh written to a fresh temp dir; returns its path.
 std::string BoxFile(const std::string& dir) {
-  const std::string path = dir + "/box.vtu";
+  std::string path = dir + "/box.vtu";
   mesh_io::WriteMeshFile(path, testing::BoxTets(3, 2, 1, 0.06, 0.04, 0.02), {});
   return path;
 }

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <numbers>
 #include <stdexcept>
 #include <string>
 
@@ -80,6 +81,23 @@ TEST_P(BuiltinOrganRow, MatchesItsRowOfTheTable) {
     // The volume's boundary is what the organ offers as its surface.
     EXPECT_EQ(organ.surface.triangles.cols(),
               mesh::ExtractBoundarySurface(organ.volume).triangles.cols());
+  }
+
+  // Surface organs are for surface models (seed 002): their triangles are well shaped.
+  if (!volume) {
+    double min_angle = 180.0;
+    const mesh::SurfaceMesh& surface = organ.surface;
+    for (Eigen::Index t = 0; t < surface.triangles.cols(); ++t) {
+      for (int c = 0; c < 3; ++c) {
+        const Vector3d corner = surface.vertices.col(surface.triangles(c, t));
+        const Vector3d u = surface.vertices.col(surface.triangles((c + 1) % 3, t)) - corner;
+        const Vector3d w = surface.vertices.col(surface.triangles((c + 2) % 3, t)) - corner;
+        min_angle =
+            std::min(min_angle, std::atan2(u.cross(w).norm(), u.dot(w)) * 180.0 / std::numbers::pi);
+      }
+    }
+    EXPECT_GE(min_angle, 25.0);
+    RecordProperty("min_triangle_angle_deg", std::to_string(min_angle));
   }
 
   // Surface: closed organs are one watertight manifold sphere; the patch is one open disc.
