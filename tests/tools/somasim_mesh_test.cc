@@ -320,3 +320,26 @@ TEST(SomasimMeshTetrahedralize, SurfaceOrganIsTetrahedralisedOnRequest) {
 
 }  // namespace
 }  // namespace somasim::tools
+
+namespace somasim::tools {
+namespace {
+
+TEST(SomasimMeshRender, DrawsABuiltinOrganAndRefusesBadOptions) {
+  const std::string dir = testing::MakeTempDir("somasim-render-cli");
+  const ToolRun run = RunTool("render builtin:plate192 " + dir +
+                              "/plate.png --size 64x48 --view=0.3,0.6,-1 --up 0,1,0 --no-edges");
+  ASSERT_EQ(run.status, 0) << run.out;
+  const std::string png = testing::Slurp(dir + "/plate.png");
+  ASSERT_GT(png.size(), 24u);
+  EXPECT_EQ(png.substr(1, 3), "PNG");
+  for (const char* bad : {"--size 64x", "--size 0x10", "--size 9000x10", "--view=1,2",
+                          "--view=0,0,0", "--up 0,0,0", "--up 1,nan,0"}) {
+    const ToolRun refused =
+        RunTool("render builtin:plate192 " + dir + "/bad.png " + std::string(bad));
+    EXPECT_EQ(refused.status, kExitUsage) << bad << ": " << refused.out;
+  }
+  EXPECT_EQ(RunTool("render builtin:heart " + dir + "/h.png").status, kExitIo);
+}
+
+}  // namespace
+}  // namespace somasim::tools
