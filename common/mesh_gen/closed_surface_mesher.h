@@ -1,7 +1,7 @@
 // Closed-surface mesher: a genus-0 triangle surface with an exact vertex count fitted to an
 // implicit solid (the built-in surface organs: spleen, kidney, gallbladder).
 //
-// The method:
+// The method (steps 1 and 2 are built from sphere_layout.h, step 3 is in closed_surface_mesher.cc):
 //  1. Layout. Exactly N points on the unit sphere in rings around the long axis (one vertex at
 //     each pole), zipped into strips. A closed triangulation of a sphere has F = 2V − 4 (Euler:
 //     V − E + F = 2 and 3F = 2E), so the triangle count follows from N. The rings are placed

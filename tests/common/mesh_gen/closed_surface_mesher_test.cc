@@ -13,6 +13,7 @@
 #include "common/mesh/geometry.h"
 #include "common/mesh/topology.h"
 #include "common/mesh_gen/implicit.h"
+#include "common/mesh_gen/sphere_layout.h"
 
 namespace somasim::mesh_gen {
 namespace {
@@ -413,6 +414,76 @@ TEST(ClosedSurfaceMesher, SparseMeshSeenObliquelyFromTheCentreStaysValid) {
     ExpectClosedGenusZero(s, n);
     EXPECT_EQ(CountTrianglesFacingTheCentre(s, centre), 0);
     EXPECT_LT(MaxAbsValue(ThePear(), s), 1e-10);
+  }
+}
+
+// The layout as a mesh on the unit sphere (vertices = the layout's points).
+mesh::SurfaceMesh LayoutMesh(const sphere_layout::SphereLayout& layout) {
+  mesh::SurfaceMesh s;
+  s.vertices.resize(3, static_cast<Eigen::Index>(layout.points.size()));
+  for (size_t i = 0; i < layout.points.size(); ++i) {
+    s.vertices.col(static_cast<Eigen::Index>(i)) = layout.points[i];
+  }
+  s.triangles.resize(3, static_cast<Eigen::Index>(layout.triangles.size()));
+  for (size_t t = 0; t < layout.triangles.size(); ++t) {
+    for (size_t k = 0; k < 3; ++k) {
+      s.triangles(static_cast<Eigen::Index>(k), static_cast<Eigen::Index>(t)) =
+          layout.triangles[t][k];
+    }
+  }
+  return s;
+}
+
+TEST(SphereLayout, LatitudeLayoutIsAnEmbeddedSphereWithNPointsAnd2NMinus4Triangles) {
+  const sphere_layout::SurfaceProfile profile = sphere_layout::UnitSphereProfile();
+  for (int n : {4, 5, 6, 7, 8, 11, 33, 100, 601, 2000}) {
+    SCOPED_TRACE("N = " + std::to_string(n));
+    const sphere_layout::SphereLayout layout = sphere_layout::MakeSphereLayout(n, profile);
+    const mesh::SurfaceMesh s = LayoutMesh(layout);
+    ExpectClosedGenusZero(s, n);
+    EXPECT_TRUE(sphere_layout::IsRadiallyEmbedded(layout.triangles, layout.points));
+    EXPECT_GT(mesh::SurfaceEnclosedVolume(s), 0.0);
+    for (const Vector3d& u : layout.points) EXPECT_NEAR(u.norm(), 1.0, 1e-12);
+  }
+}
+
+TEST(SphereLayout, SurfaceFittedLayoutOfAnEllipsoidIsRadiallyEmbedded) {
+  // The layout stage of MeshClosedSurface on the 6 × 3 × 2 cm ellipsoid: rays land on the
+  // surface, the measured profile's area is close to the ellipsoid's (an inscribed polyhedron
+  // of 32 × 16 rays: a little less), and the fitted layout stays embedded along its rays.
+  const OrientedEllipsoid& ellipsoid = TestEllipsoid();
+  const sphere_layout::Frame frame = sphere_layout::MakeFrame(Vector3d::UnitX());
+  const sphere_layout::RayCaster caster(ellipsoid, kEllipsoidCentre);
+  sphere_layout::OctantEllipsoid shape{};
+  for (size_t axis = 0; axis < 3; ++axis) {
+    const Vector3d direction = frame.ToWorld(Vector3d::Unit(static_cast<Eigen::Index>(axis)));
+    const Vector3d plus = caster.Cast(direction);
+    const Vector3d minus = caster.Cast(-direction);
+    EXPECT_LT(std::abs(ellipsoid.Value(plus)), 1e-10);
+    EXPECT_LT(std::abs(ellipsoid.Value(minus)), 1e-10);
+    shape.plus[axis] = (plus - kEllipsoidCentre).norm();
+    shape.minus[axis] = (minus - kEllipsoidCentre).norm();
+    // The frame's axes are the ellipsoid's, so the reach is the semi-axis both ways.
+    EXPECT_NEAR(shape.plus[axis], kEllipsoidSemiAxes[static_cast<Eigen::Index>(axis)], 1e-9);
+    EXPECT_NEAR(shape.minus[axis], kEllipsoidSemiAxes[static_cast<Eigen::Index>(axis)], 1e-9);
+  }
+  const sphere_layout::SurfaceProfile profile = sphere_layout::MeasureProfile(caster, frame, shape);
+  // Surface area of the ellipsoid by Thomsen's formula (relative error below 1.1 %).
+  constexpr double kP = 1.6075;
+  const double a = std::pow(0.06, kP);
+  const double b = std::pow(0.03, kP);
+  const double c = std::pow(0.02, kP);
+  const double area = 4.0 * kPi * std::pow((a * b + a * c + b * c) / 3.0, 1.0 / kP);
+  EXPECT_NEAR(profile.area / area, 1.0, 0.02);
+  for (int n : {20, 200, 600}) {
+    SCOPED_TRACE("N = " + std::to_string(n));
+    const sphere_layout::SphereLayout layout = sphere_layout::MakeSphereLayout(n, profile);
+    ExpectClosedGenusZero(LayoutMesh(layout), n);
+    std::vector<Vector3d> directions;
+    for (const Vector3d& u : layout.points) {
+      directions.push_back(sphere_layout::RayDirection(frame, shape, u));
+    }
+    EXPECT_TRUE(sphere_layout::IsRadiallyEmbedded(layout.triangles, directions));
   }
 }
 
