@@ -1,0 +1,344 @@
+#include "server/models/mass_spring_model.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <stdexcept>
+#include <string>
+
+#include "common/mesh/geometry.h"
+
+namespace somasim::models {
+namespace {
+
+using Eigen::Vector3d;
+
+// The state of a mass-spring model: the base state plus the force accumulator.
+class MassSpringState final : public TissueState {
+ public:
+  mesh::Points forces;  // [N], 3 × num_nodes, scratch of Advance
+};
+
+void CheckParameters(const MassSpringParameters& p) {
+  const auto positive_or_raw = [](double physical, double raw, const char* what) {
+    if (raw > 0.0) return;
+    if (!(physical > 0.0) || !std::isfinite(physical)) {
+      throw std::invalid_argument(std::string("mass-spring: ") + what +
+                                  " must be a finite value > 0");
+    }
+  };
+  positive_or_raw(p.youngs_modulus, p.spring_stiffness, "youngs_modulus [Pa]");
+  positive_or_raw(p.density, p.node_mass, "density [kg/m^3]");
+  if (!(p.damping_ratio >= 0.0) || !std::isfinite(p.damping_ratio)) {
+    throw std::invalid_argument("mass-spring: damping_ratio must be a finite value >= 0");
+  }
+  if (!(p.thickness > 0.0) || !std::isfinite(p.thickness)) {
+    throw std::invalid_argument("mass-spring: thickness [m] must be a finite value > 0");
+  }
+  if (!(p.spring_stiffness >= 0.0) || !std::isfinite(p.spring_stiffness)) {
+    throw std::invalid_argument("mass-spring: spring_stiffness [N/m] must be finite and >= 0");
+  }
+  if (!(p.node_mass >= 0.0) || !std::isfinite(p.node_mass)) {
+    throw std::invalid_argument("mass-spring: node_mass [kg] must be finite and >= 0");
+  }
+  if (!(p.speed_limit > 0.0)) {
+    throw std::invalid_argument("mass-spring: speed_limit [m/s] must be > 0");
+  }
+}
+
+void CheckPoints(const mesh::Points& points) {
+  if (points.cols() == 0) throw std::invalid_argument("mass-spring: the mesh has no nodes");
+  for (Eigen::Index i = 0; i < points.cols(); ++i) {
+    if (!points.col(i).allFinite()) {
+      throw std::invalid_argument("mass-spring: node " + std::to_string(i) +
+                                  " has a non-finite coordinate");
+    }
+  }
+}
+
+// Unique edges of the elements (rows of `corners` nodes), each with the sum of the sizes of the
+// elements that contain it; the size of each element is spread over its corners as node sizes.
+template <int kCorners>
+void CollectEdges(const Eigen::Matrix<int32_t, kCorners, Eigen::Dynamic>& elements,
+                  const std::vector<double>& element_size, Eigen::Index num_nodes,
+                  std::vector<std::array<int32_t, 2>>* edges, std::vector<double>* edge_size,
+                  std::vector<double>* node_size) {
+  struct Entry {
+    std::array<int32_t, 2> edge;
+    double size;
+  };
+  std::vector<Entry> entries;
+  node_size->assign(static_cast<size_t>(num_nodes), 0.0);
+  for (Eigen::Index e = 0; e < elements.cols(); ++e) {
+    for (int a = 0; a < kCorners; ++a) {
+      const int32_t na = elements(a, e);
+      if (na < 0 || na >= num_nodes) {
+        throw std::invalid_argument("mass-spring: element " + std::to_string(e) + " uses node " +
+                                    std::to_string(na) + ", outside 0.." +
+                                    std::to_string(num_nodes - 1));
+      }
+      (*node_size)[static_cast<size_t>(na)] += element_size[static_cast<size_t>(e)] / kCorners;
+      for (int b = a + 1; b < kCorners; ++b) {
+        const int32_t nb = elements(b, e);
+        entries.push_back(
+            {{std::min(na, nb), std::max(na, nb)}, element_size[static_cast<size_t>(e)]});
+      }
+    }
+  }
+  std::sort(entries.begin(), entries.end(),
+            [](const Entry& x, const Entry& y) { return x.edge < y.edge; });
+  edges->clear();
+  edge_size->clear();
+  for (const Entry& entry : entries) {
+    if (!edges->empty() && edges->back() == entry.edge) {
+      edge_size->back() += entry.size;
+    } else {
+      edges->push_back(entry.edge);
+      edge_size->push_back(entry.size);
+    }
+  }
+}
+
+}  // namespace
+
+std::unique_ptr<MassSpringModel> MassSpringModel::FromTetMesh(
+    const mesh::TetMesh& mesh, const MassSpringParameters& parameters) {
+  CheckParameters(parameters);
+  CheckPoints(mesh.vertices);
+  if (mesh.tetrahedra.cols() == 0) {
+    throw std::invalid_argument("mass-spring: the mesh has no tetrahedra");
+  }
+  std::vector<double> volume(static_cast<size_t>(mesh.tetrahedra.cols()));
+  for (Eigen::Index t = 0; t < mesh.tetrahedra.cols(); ++t) {
+    for (int c = 0; c < 4; ++c) {
+      const int32_t node = mesh.tetrahedra(c, t);
+      if (node < 0 || node >= mesh.vertices.cols()) {
+        throw std::invalid_argument("mass-spring: tetrahedron " + std::to_string(t) +
+                                    " uses node " + std::to_string(node) + ", outside the mesh");
+      }
+    }
+    volume[static_cast<size_t>(t)] =
+        std::abs(mesh::TetSignedVolume(mesh.vertices, mesh.tetrahedra.col(t)));
+  }
+  std::vector<std::array<int32_t, 2>> edges;
+  std::vector<double> edge_size, node_size;
+  CollectEdges<4>(mesh.tetrahedra, volume, mesh.vertices.cols(), &edges, &edge_size, &node_size);
+  std::unique_ptr<MassSpringModel> model(new MassSpringModel());
+  model->Build(mesh.vertices, edges, edge_size, node_size, parameters);
+  return model;
+}
+
+std::unique_ptr<MassSpringModel> MassSpringModel::FromSurface(
+    const mesh::SurfaceMesh& surface, const MassSpringParameters& parameters) {
+  CheckParameters(parameters);
+  CheckPoints(surface.vertices);
+  if (surface.triangles.cols() == 0) {
+    throw std::invalid_argument("mass-spring: the surface has no triangles");
+  }
+  std::vector<double> shell_volume(static_cast<size_t>(surface.triangles.cols()));
+  for (Eigen::Index t = 0; t < surface.triangles.cols(); ++t) {
+    for (int c = 0; c < 3; ++c) {
+      const int32_t node = surface.triangles(c, t);
+      if (node < 0 || node >= surface.vertices.cols()) {
+        throw std::invalid_argument("mass-spring: triangle " + std::to_string(t) + " uses node " +
+                                    std::to_string(node) + ", outside the mesh");
+      }
+    }
+    const Vector3d a = surface.vertices.col(surface.triangles(0, t));
+    const Vector3d b = surface.vertices.col(surface.triangles(1, t));
+    const Vector3d c = surface.vertices.col(surface.triangles(2, t));
+    shell_volume[static_cast<size_t>(t)] = 0.5 * (b - a).cross(c - a).norm() * parameters.thickness;
+  }
+  std::vector<std::array<int32_t, 2>> edges;
+  std::vector<double> edge_size, node_size;
+  CollectEdges<3>(surface.triangles, shell_volume, surface.vertices.cols(), &edges, &edge_size,
+                  &node_size);
+  std::unique_ptr<MassSpringModel> model(new MassSpringModel());
+  model->Build(surface.vertices, edges, edge_size, node_size, parameters);
+  return model;
+}
+
+std::unique_ptr<MassSpringModel> MassSpringModel::FromEdges(
+    const mesh::Points& rest, const std::vector<std::array<int32_t, 2>>& edges,
+    const MassSpringParameters& parameters) {
+  CheckParameters(parameters);
+  CheckPoints(rest);
+  if (!(parameters.spring_stiffness > 0.0) || !(parameters.node_mass > 0.0)) {
+    throw std::invalid_argument(
+        "mass-spring: springs given as edges need spring_stiffness and node_mass > 0");
+  }
+  if (edges.empty()) throw std::invalid_argument("mass-spring: no springs");
+  std::vector<std::array<int32_t, 2>> ordered;
+  ordered.reserve(edges.size());
+  for (size_t e = 0; e < edges.size(); ++e) {
+    const auto [a, b] = edges[e];
+    if (a < 0 || b < 0 || a >= rest.cols() || b >= rest.cols() || a == b) {
+      throw std::invalid_argument("mass-spring: spring " + std::to_string(e) + " joins nodes " +
+                                  std::to_string(a) + " and " + std::to_string(b) +
+                                  ", not two distinct nodes of 0.." +
+                                  std::to_string(rest.cols() - 1));
+    }
+    ordered.push_back({std::min(a, b), std::max(a, b)});
+  }
+  std::unique_ptr<MassSpringModel> model(new MassSpringModel());
+  model->Build(rest, ordered, std::vector<double>(ordered.size(), 0.0),
+               std::vector<double>(static_cast<size_t>(rest.cols()), 0.0), parameters);
+  return model;
+}
+
+void MassSpringModel::Build(const mesh::Points& rest,
+                            const std::vector<std::array<int32_t, 2>>& edges,
+                            const std::vector<double>& edge_size_sum,
+                            const std::vector<double>& node_size, const MassSpringParameters& p) {
+  rest_ = rest;
+  const auto n = static_cast<size_t>(rest.cols());
+  mass_.resize(n);
+  inverse_mass_.resize(n);
+  for (size_t i = 0; i < n; ++i) {
+    mass_[i] = p.node_mass > 0.0 ? p.node_mass : p.density * node_size[i];
+    // A node no element touches has no mass: it cannot move (inverse mass 0).
+    inverse_mass_[i] = mass_[i] > 0.0 ? 1.0 / mass_[i] : 0.0;
+  }
+  const size_t m = edges.size();
+  spring_i_.resize(m);
+  spring_j_.resize(m);
+  rest_length_.resize(m);
+  stiffness_.resize(m);
+  damping_.resize(m);
+  for (size_t s = 0; s < m; ++s) {
+    const auto [i, j] = edges[s];
+    spring_i_[s] = i;
+    spring_j_[s] = j;
+    const double length = (rest.col(j) - rest.col(i)).norm();
+    if (!(length > 0.0)) {
+      throw std::invalid_argument("mass-spring: nodes " + std::to_string(i) + " and " +
+                                  std::to_string(j) + " coincide (a zero-length spring)");
+    }
+    rest_length_[s] = length;
+    // Van Gelder 1998: k_e = E Σ size / |e|².
+    stiffness_[s] = p.spring_stiffness > 0.0
+                        ? p.spring_stiffness
+                        : p.youngs_modulus * edge_size_sum[s] / (length * length);
+    const double mi = mass_[static_cast<size_t>(i)];
+    const double mj = mass_[static_cast<size_t>(j)];
+    const double reduced = mi + mj > 0.0 ? mi * mj / (mi + mj) : 0.0;
+    damping_[s] = 2.0 * p.damping_ratio * std::sqrt(stiffness_[s] * reduced);
+  }
+  node_spring_start_.assign(n + 1, 0);
+  for (size_t s = 0; s < m; ++s) {
+    ++node_spring_start_[static_cast<size_t>(spring_i_[s]) + 1];
+    ++node_spring_start_[static_cast<size_t>(spring_j_[s]) + 1];
+  }
+  for (size_t i = 0; i < n; ++i) node_spring_start_[i + 1] += node_spring_start_[i];
+  node_springs_.resize(2 * m);
+  std::vector<int32_t> fill(node_spring_start_.begin(), node_spring_start_.end() - 1);
+  for (size_t s = 0; s < m; ++s) {
+    node_springs_[static_cast<size_t>(fill[static_cast<size_t>(spring_i_[s])]++)] =
+        static_cast<int32_t>(s);
+    node_springs_[static_cast<size_t>(fill[static_cast<size_t>(spring_j_[s])]++)] =
+        static_cast<int32_t>(s);
+  }
+  set_speed_limit(p.speed_limit);
+}
+
+std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
+  auto state = std::make_unique<MassSpringState>();
+  InitialiseState(rest_, state.get());
+  state->forces = mesh::Points::Zero(3, rest_.cols());
+  return state;
+}
+
+void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
+  // Seed 002 eq. 1–3: f_i += K (l - l0) u + D ((v_j - v_i)·u) u, u = (x_j - x_i) / l; f_j -= ….
+  forces->setZero();
+  const double* x = state.positions.data();
+  const double* v = state.velocities.data();
+  double* f = forces->data();
+  const size_t m = spring_i_.size();
+  for (size_t s = 0; s < m; ++s) {
+    const size_t i = 3 * static_cast<size_t>(spring_i_[s]);
+    const size_t j = 3 * static_cast<size_t>(spring_j_[s]);
+    const double dx = x[j] - x[i];
+    const double dy = x[j + 1] - x[i + 1];
+    const double dz = x[j + 2] - x[i + 2];
+    const double length = std::sqrt(dx * dx + dy * dy + dz * dz);
+    const double inv = length > 0.0 ? 1.0 / length : 0.0;
+    const double ux = dx * inv, uy = dy * inv, uz = dz * inv;
+    const double closing =
+        (v[j] - v[i]) * ux + (v[j + 1] - v[i + 1]) * uy + (v[j + 2] - v[i + 2]) * uz;
+    const double magnitude = stiffness_[s] * (length - rest_length_[s]) + damping_[s] * closing;
+    f[i] += magnitude * ux;
+    f[i + 1] += magnitude * uy;
+    f[i + 2] += magnitude * uz;
+    f[j] -= magnitude * ux;
+    f[j + 1] -= magnitude * uy;
+    f[j + 2] -= magnitude * uz;
+  }
+}
+
+void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const {
+  auto* state = static_cast<MassSpringState*>(base);
+  InternalForces(*state, &state->forces);
+  const Eigen::Index n = rest_.cols();
+  for (Eigen::Index i = 0; i < n; ++i) {
+    state->forces.col(i) += mass_[static_cast<size_t>(i)] * inputs.gravity;
+  }
+  if (inputs.external_forces != nullptr) state->forces += *inputs.external_forces;
+  for (const Attachment& a : inputs.attachments) {
+    state->forces.col(a.node) += a.stiffness * (a.target - state->positions.col(a.node));
+  }
+  // Symplectic Euler (seed 002 eq. 4–5): v += dt f / m, then x += dt v.
+  const double dt = inputs.dt;
+  for (Eigen::Index i = 0; i < n; ++i) {
+    state->velocities.col(i) += (dt * inverse_mass_[static_cast<size_t>(i)]) * state->forces.col(i);
+    state->positions.col(i) += dt * state->velocities.col(i);
+  }
+  for (const int32_t node : inputs.fixed_nodes) {
+    state->positions.col(node) -= dt * state->velocities.col(node);
+    state->velocities.col(node).setZero();
+  }
+  for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
+    const int32_t node = inputs.prescribed_nodes[k];
+    const Vector3d target = inputs.prescribed_positions->col(static_cast<Eigen::Index>(k));
+    const Vector3d before = state->positions.col(node) - dt * state->velocities.col(node);
+    state->velocities.col(node) = (target - before) / dt;
+    state->positions.col(node) = target;
+  }
+}
+
+Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_t node) const {
+  // -∂f_i/∂x_i of each incident spring: k [u uᵀ + (1 - l0/l)(I - u uᵀ)] (elastic part).
+  Eigen::Matrix3d k_local = Eigen::Matrix3d::Zero();
+  for (int32_t e = node_spring_start_[static_cast<size_t>(node)];
+       e < node_spring_start_[static_cast<size_t>(node) + 1]; ++e) {
+    const auto s = static_cast<size_t>(node_springs_[static_cast<size_t>(e)]);
+    const Vector3d d = state.positions.col(spring_j_[s]) - state.positions.col(spring_i_[s]);
+    const double length = d.norm();
+    if (!(length > 0.0)) continue;
+    const Vector3d u = d / length;
+    const Eigen::Matrix3d uu = u * u.transpose();
+    k_local += stiffness_[s] *
+               (uu + (1.0 - rest_length_[s] / length) * (Eigen::Matrix3d::Identity() - uu));
+  }
+  return k_local;
+}
+
+EnergyReport MassSpringModel::Energy(const TissueState& state,
+                                     const Eigen::Vector3d& gravity) const {
+  EnergyReport report;
+  for (size_t s = 0; s < spring_i_.size(); ++s) {
+    const double stretch =
+        (state.positions.col(spring_j_[s]) - state.positions.col(spring_i_[s])).norm() -
+        rest_length_[s];
+    report.elastic += 0.5 * stiffness_[s] * stretch * stretch;
+  }
+  for (Eigen::Index i = 0; i < rest_.cols(); ++i) {
+    const double m = mass_[static_cast<size_t>(i)];
+    report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
+    report.gravity -= m * gravity.dot(state.positions.col(i));
+    report.momentum += m * state.velocities.col(i);
+  }
+  return report;
+}
+
+}  // namespace somasim::models

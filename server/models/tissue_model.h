@@ -1,0 +1,113 @@
+// The one interface every tissue model implements (mass-spring, molecular, position-based, FEM,
+// reduced, meshless): a read-only model plus a mutable state (../shared/STYLE.md), stepped by
+// the server's physics thread. Pure physics: no I/O, no DDS, no logging.
+//
+// A step reads StepInputs (views into caller-owned arrays, so stepping allocates nothing), moves
+// the state, and checks the result: a step that produces a non-finite value or a speed above the
+// model's limit is rejected — the state is restored to the last good step and the rejection is
+// counted — so no NaN ever leaves a model.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <memory>
+#include <span>
+
+#include "common/mesh/mesh_types.h"
+
+namespace somasim::models {
+
+// A spring from a node to a target point: a grasping jaw holding tissue.
+struct Attachment {
+  int32_t node = 0;                                  // 0..num_nodes-1
+  Eigen::Vector3d target = Eigen::Vector3d::Zero();  // [m]
+  double stiffness = 0.0;                            // [N/m], >= 0
+};
+
+// What drives one step. Spans and pointers view the caller's arrays; nothing is copied.
+struct StepInputs {
+  double dt = 1e-3;                                    // [s], > 0
+  Eigen::Vector3d gravity = Eigen::Vector3d::Zero();   // [m/s²]
+  const mesh::Points* external_forces = nullptr;       // [N], 3 × num_nodes, or none
+  std::span<const int32_t> fixed_nodes;                // held still where they are
+  std::span<const int32_t> prescribed_nodes;           // moved to prescribed_positions
+  const mesh::Points* prescribed_positions = nullptr;  // [m], 3 × prescribed_nodes.size()
+  std::span<const Attachment> attachments;             // grasps
+};
+
+enum class StepStatus {
+  kOk,
+  kRejectedNonFinite,  // a position or velocity became NaN or infinite
+  kRejectedTooFast,    // a node moved faster than the model's speed limit (energy blow-up)
+  kBadInput,           // StepInputs out of range (dt, indices, sizes); nothing changed
+};
+const char* StepStatusName(StepStatus status);
+
+struct StepCounters {
+  int64_t steps = 0;           // accepted steps
+  int64_t rejected_steps = 0;  // steps rolled back because they diverged
+  int64_t bad_inputs = 0;      // steps refused because of their inputs
+};
+
+// The mutable part of a model: what a snapshot, a replay or a rollback needs. Models derive from
+// it to add their internal variables and scratch, all sized by MakeState.
+class TissueState {
+ public:
+  virtual ~TissueState() = default;
+  mesh::Points positions;   // [m], 3 × num_nodes
+  mesh::Points velocities;  // [m/s], 3 × num_nodes
+  double time = 0.0;        // [s] of accepted steps
+  StepCounters counters;
+
+ protected:
+  friend class TissueModel;
+  // Models with internal variables beyond positions and velocities save and restore them here,
+  // so a rejected step rolls back completely. Must not allocate.
+  virtual void SaveGood() {}
+  virtual void RestoreGood() {}
+  mesh::Points last_good_positions_;  // restored when a step diverges
+  mesh::Points last_good_velocities_;
+};
+
+struct EnergyReport {
+  double kinetic = 0.0;                                // [J] ½ Σ m |v|²
+  double elastic = 0.0;                                // [J] the model's internal energy
+  double gravity = 0.0;                                // [J] -Σ m g·x
+  Eigen::Vector3d momentum = Eigen::Vector3d::Zero();  // [kg m/s] Σ m v
+  double total() const { return kinetic + elastic + gravity; }
+};
+
+class TissueModel {
+ public:
+  virtual ~TissueModel() = default;
+  TissueModel() = default;
+  TissueModel(const TissueModel&) = delete;
+  TissueModel& operator=(const TissueModel&) = delete;
+
+  virtual int32_t num_nodes() const = 0;
+  // A state at rest in the reference configuration, with every buffer a step needs.
+  virtual std::unique_ptr<TissueState> MakeState() const = 0;
+  // Advances `state` by inputs.dt. Allocates nothing; never leaves a NaN in `state`.
+  StepStatus Step(const StepInputs& inputs, TissueState* state) const;
+  // The 3×3 stiffness -∂f_node/∂x_node [N/m] at the current state (what the haptic node renders).
+  virtual Eigen::Matrix3d LocalStiffness(const TissueState& state, int32_t node) const = 0;
+  // Internal forces [N] at the state's positions and velocities, 3 × num_nodes.
+  virtual void InternalForces(const TissueState& state, mesh::Points* forces) const = 0;
+  virtual EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const = 0;
+  // Whether Cut() can remove elements crossing a swept surface (the cutting issue).
+  virtual bool SupportsCutting() const { return false; }
+  // Nodes faster than this [m/s] mark a step as diverged (tissue never moves like that).
+  double speed_limit() const { return speed_limit_; }
+
+ protected:
+  // The model's own integration of one step; inputs are already checked.
+  virtual void Advance(const StepInputs& inputs, TissueState* state) const = 0;
+  void set_speed_limit(double limit) { speed_limit_ = limit; }
+  // Sizes the base-class buffers of a freshly made state and fills them with `rest`.
+  static void InitialiseState(const mesh::Points& rest, TissueState* state);
+
+ private:
+  double speed_limit_ = 100.0;  // [m/s]
+};
+
+}  // namespace somasim::models
