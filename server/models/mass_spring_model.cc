@@ -5,6 +5,7 @@
 #include <cmath>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 #include "common/mesh/geometry.h"
 
@@ -13,10 +14,17 @@ namespace {
 
 using Eigen::Vector3d;
 
-// The state of a mass-spring model: the base state plus the force accumulator.
+// The state of a mass-spring model: the base state plus the scratch of a step, all sized by
+// MakeState so that stepping allocates nothing.
 class MassSpringState final : public TissueState {
  public:
-  mesh::Points forces;  // [N], 3 × num_nodes, scratch of Advance
+  mesh::Points forces;  // [N], 3 × num_nodes
+  // Implicit Euler only.
+  mesh::Points spring_direction;          // u, 3 × num_springs
+  std::vector<double> spring_transverse;  // (1 - l0/l)₊, num_springs
+  std::vector<uint8_t> constrained;       // fixed or prescribed this step, num_nodes
+  mesh::Points rhs, dv, residual, preconditioned, search, product;  // 3 × num_nodes each
+  Eigen::Matrix<double, 9, Eigen::Dynamic> inverse_diagonal;        // 3×3 blocks, num_nodes
 };
 
 void CheckParameters(const MassSpringParameters& p) {
@@ -40,6 +48,9 @@ void CheckParameters(const MassSpringParameters& p) {
   }
   if (!(p.node_mass >= 0.0) || !std::isfinite(p.node_mass)) {
     throw std::invalid_argument("mass-spring: node_mass [kg] must be finite and >= 0");
+  }
+  if (!(p.cg_tolerance > 0.0) || !(p.cg_max_iterations > 0)) {
+    throw std::invalid_argument("mass-spring: cg_tolerance and cg_max_iterations must be > 0");
   }
   if (!(p.speed_limit > 0.0)) {
     throw std::invalid_argument("mass-spring: speed_limit [m/s] must be > 0");
@@ -239,12 +250,26 @@ void MassSpringModel::Build(const mesh::Points& rest,
         static_cast<int32_t>(s);
   }
   set_speed_limit(p.speed_limit);
+  integrator_ = p.integrator;
+  cg_tolerance_ = p.cg_tolerance;
+  cg_max_iterations_ = p.cg_max_iterations;
 }
 
 std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
   auto state = std::make_unique<MassSpringState>();
   InitialiseState(rest_, state.get());
-  state->forces = mesh::Points::Zero(3, rest_.cols());
+  const Eigen::Index n = rest_.cols();
+  state->forces = mesh::Points::Zero(3, n);
+  if (integrator_ == MassSpringIntegrator::kImplicitEuler) {
+    state->spring_direction = mesh::Points::Zero(3, num_springs());
+    state->spring_transverse.assign(static_cast<size_t>(num_springs()), 0.0);
+    state->constrained.assign(static_cast<size_t>(n), 0);
+    for (mesh::Points* v : {&state->rhs, &state->dv, &state->residual, &state->preconditioned,
+                            &state->search, &state->product}) {
+      *v = mesh::Points::Zero(3, n);
+    }
+    state->inverse_diagonal = Eigen::Matrix<double, 9, Eigen::Dynamic>::Zero(9, n);
+  }
   return state;
 }
 
@@ -276,9 +301,8 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   }
 }
 
-void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const {
+void MassSpringModel::AddExternalForces(const StepInputs& inputs, TissueState* base) const {
   auto* state = static_cast<MassSpringState*>(base);
-  InternalForces(*state, &state->forces);
   const Eigen::Index n = rest_.cols();
   for (Eigen::Index i = 0; i < n; ++i) {
     state->forces.col(i) += mass_[static_cast<size_t>(i)] * inputs.gravity;
@@ -287,12 +311,13 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   for (const Attachment& a : inputs.attachments) {
     state->forces.col(a.node) += a.stiffness * (a.target - state->positions.col(a.node));
   }
-  // Symplectic Euler (seed 002 eq. 4–5): v += dt f / m, then x += dt v.
+}
+
+namespace {
+
+// Holds fixed nodes still and moves prescribed ones, after the integrator moved every node.
+void ApplyConstraints(const StepInputs& inputs, TissueState* state) {
   const double dt = inputs.dt;
-  for (Eigen::Index i = 0; i < n; ++i) {
-    state->velocities.col(i) += (dt * inverse_mass_[static_cast<size_t>(i)]) * state->forces.col(i);
-    state->positions.col(i) += dt * state->velocities.col(i);
-  }
   for (const int32_t node : inputs.fixed_nodes) {
     state->positions.col(node) -= dt * state->velocities.col(node);
     state->velocities.col(node).setZero();
@@ -304,6 +329,160 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
     state->velocities.col(node) = (target - before) / dt;
     state->positions.col(node) = target;
   }
+}
+
+}  // namespace
+
+void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const {
+  if (integrator_ == MassSpringIntegrator::kImplicitEuler) {
+    AdvanceImplicit(inputs, base);
+    return;
+  }
+  auto* state = static_cast<MassSpringState*>(base);
+  InternalForces(*state, &state->forces);
+  AddExternalForces(inputs, state);
+  // Symplectic Euler (seed 002 eq. 4–5): v += dt f / m, then x += dt v.
+  const double dt = inputs.dt;
+  const Eigen::Index n = rest_.cols();
+  for (Eigen::Index i = 0; i < n; ++i) {
+    state->velocities.col(i) += (dt * inverse_mass_[static_cast<size_t>(i)]) * state->forces.col(i);
+    state->positions.col(i) += dt * state->velocities.col(i);
+  }
+  ApplyConstraints(inputs, state);
+}
+
+// The linear operator of a spring network: out = mass_coeff M in + Σ_s B_s (in_i - in_j) on i,
+// minus on j, with B_s = (damping_coeff D_s + stiffness_coeff k_s) u uᵀ
+//                        + stiffness_coeff k_s c_s (I - u uᵀ),
+// plus stiffness_coeff k_a in_i for every attachment. (M + dt C + dt² K) and K v are both
+// instances.
+class MassSpringImplicitStep {
+ public:
+  static void Multiply(const MassSpringModel& model, const MassSpringState& state,
+                       const StepInputs& inputs, const mesh::Points& in, double mass_coeff,
+                       double stiffness_coeff, double damping_coeff, mesh::Points* out) {
+    const Eigen::Index n = in.cols();
+    for (Eigen::Index i = 0; i < n; ++i) {
+      out->col(i) = (mass_coeff * model.mass_[static_cast<size_t>(i)]) * in.col(i);
+    }
+    const size_t m = model.spring_i_.size();
+    for (size_t s = 0; s < m; ++s) {
+      const Eigen::Index i = model.spring_i_[s];
+      const Eigen::Index j = model.spring_j_[s];
+      const Vector3d u = state.spring_direction.col(static_cast<Eigen::Index>(s));
+      const double along =
+          damping_coeff * model.damping_[s] + stiffness_coeff * model.stiffness_[s];
+      const double across = stiffness_coeff * model.stiffness_[s] * state.spring_transverse[s];
+      const Vector3d d = in.col(i) - in.col(j);
+      const Vector3d b = across * d + (along - across) * u.dot(d) * u;
+      out->col(i) += b;
+      out->col(j) -= b;
+    }
+    for (const Attachment& a : inputs.attachments) {
+      out->col(a.node) += stiffness_coeff * a.stiffness * in.col(a.node);
+    }
+  }
+};
+
+void MassSpringModel::AdvanceImplicit(const StepInputs& inputs, TissueState* base) const {
+  auto* state = static_cast<MassSpringState*>(base);
+  const double dt = inputs.dt;
+  const Eigen::Index n = rest_.cols();
+  InternalForces(*state, &state->forces);
+  AddExternalForces(inputs, state);
+
+  // Spring directions and clamped transverse factors at the current positions.
+  for (size_t s = 0; s < spring_i_.size(); ++s) {
+    const Vector3d d = state->positions.col(spring_j_[s]) - state->positions.col(spring_i_[s]);
+    const double length = d.norm();
+    const auto col = static_cast<Eigen::Index>(s);
+    state->spring_direction.col(col) = length > 0.0 ? Vector3d(d / length) : Vector3d::Zero();
+    state->spring_transverse[s] =
+        length > 0.0 ? std::max(0.0, 1.0 - rest_length_[s] / length) : 0.0;
+  }
+  std::fill(state->constrained.begin(), state->constrained.end(), uint8_t{0});
+  for (const int32_t node : inputs.fixed_nodes) state->constrained[static_cast<size_t>(node)] = 1;
+  for (const int32_t node : inputs.prescribed_nodes) {
+    state->constrained[static_cast<size_t>(node)] = 1;
+  }
+  const auto mask = [&](mesh::Points* v) {
+    for (Eigen::Index i = 0; i < n; ++i) {
+      if (state->constrained[static_cast<size_t>(i)] != 0) v->col(i).setZero();
+    }
+  };
+
+  // rhs = dt f - dt² K v.
+  MassSpringImplicitStep::Multiply(*this, *state, inputs, state->velocities, 0.0, 1.0, 0.0,
+                                   &state->product);
+  state->rhs = dt * state->forces - (dt * dt) * state->product;
+  mask(&state->rhs);
+
+  // Block-Jacobi preconditioner: the inverse of each node's 3×3 diagonal block of A.
+  for (Eigen::Index i = 0; i < n; ++i) {
+    Eigen::Matrix3d block = mass_[static_cast<size_t>(i)] * Eigen::Matrix3d::Identity();
+    for (int32_t e = node_spring_start_[static_cast<size_t>(i)];
+         e < node_spring_start_[static_cast<size_t>(i) + 1]; ++e) {
+      const auto s = static_cast<size_t>(node_springs_[static_cast<size_t>(e)]);
+      const Vector3d u = state->spring_direction.col(static_cast<Eigen::Index>(s));
+      const double along = dt * damping_[s] + dt * dt * stiffness_[s];
+      const double across = dt * dt * stiffness_[s] * state->spring_transverse[s];
+      block += across * Eigen::Matrix3d::Identity() + (along - across) * (u * u.transpose());
+    }
+    Eigen::Map<Eigen::Matrix3d> inverse(state->inverse_diagonal.col(i).data());
+    if (mass_[static_cast<size_t>(i)] > 0.0) {
+      inverse = block.inverse();
+    } else {
+      inverse.setIdentity();
+    }
+  }
+  for (const Attachment& a : inputs.attachments) {
+    Eigen::Map<Eigen::Matrix3d> inverse(state->inverse_diagonal.col(a.node).data());
+    inverse = (inverse.inverse() + dt * dt * a.stiffness * Eigen::Matrix3d::Identity()).inverse();
+  }
+  const auto precondition = [&](const mesh::Points& r, mesh::Points* z) {
+    for (Eigen::Index i = 0; i < n; ++i) {
+      z->col(i) =
+          Eigen::Map<const Eigen::Matrix3d>(state->inverse_diagonal.col(i).data()) * r.col(i);
+    }
+    mask(z);
+  };
+
+  // Preconditioned conjugate gradients on (M + dt C + dt² K) Δv = rhs, constrained rows held at 0.
+  state->dv.setZero();
+  state->residual = state->rhs;
+  const double rhs_norm = state->rhs.norm();
+  int iterations = 0;
+  bool converged = !(rhs_norm > 0.0);
+  if (!converged) {
+    precondition(state->residual, &state->preconditioned);
+    state->search = state->preconditioned;
+    double rz = state->residual.cwiseProduct(state->preconditioned).sum();
+    while (iterations < cg_max_iterations_) {
+      MassSpringImplicitStep::Multiply(*this, *state, inputs, state->search, 1.0, dt * dt, dt,
+                                       &state->product);
+      mask(&state->product);
+      const double curvature = state->search.cwiseProduct(state->product).sum();
+      if (!(curvature > 0.0)) break;
+      const double alpha = rz / curvature;
+      state->dv += alpha * state->search;
+      state->residual -= alpha * state->product;
+      ++iterations;
+      if (state->residual.norm() <= cg_tolerance_ * rhs_norm) {
+        converged = true;
+        break;
+      }
+      precondition(state->residual, &state->preconditioned);
+      const double rz_next = state->residual.cwiseProduct(state->preconditioned).sum();
+      state->search = state->preconditioned + (rz_next / rz) * state->search;
+      rz = rz_next;
+    }
+  }
+  state->counters.solver_iterations += iterations;
+  if (!converged) ++state->counters.solver_unconverged;
+
+  state->velocities += state->dv;
+  state->positions += dt * state->velocities;
+  ApplyConstraints(inputs, state);
 }
 
 Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_t node) const {

@@ -20,6 +20,16 @@ namespace somasim::models {
 // tetrahedra, area × thickness for triangles), lumped masses ρ · size / corners, and damping
 // D_e = 2 ζ √(k_e m_e) with the pair's reduced mass m_e = m_i m_j / (m_i + m_j). A spring network
 // cannot represent Poisson's ratio (it fixes ν = 1/4 in 3-D), so none is asked for.
+enum class MassSpringIntegrator {
+  // Seed 002 eq. 4–5: v += dt f/m, x += dt v. Cheap; stable while dt < 2/ω_max.
+  kSymplecticEuler,
+  // Linearised backward Euler (Baraff & Witkin 1998): (M + dt C + dt² K) Δv = dt (f - dt K v),
+  // solved by Jacobi-preconditioned conjugate gradients, matrix-free over the springs. Stable
+  // for stiff tissue at 1 ms. K keeps only the non-negative transverse stiffness
+  // k (1 - l0/l)₊ so the system stays positive definite.
+  kImplicitEuler,
+};
+
 struct MassSpringParameters {
   double youngs_modulus = 0.0;  // E [Pa], > 0 (unless spring_stiffness is given)
   double density = 1000.0;      // ρ [kg/m³], > 0 (unless node_mass is given)
@@ -30,6 +40,9 @@ struct MassSpringParameters {
   double spring_stiffness = 0.0;
   double node_mass = 0.0;
   double speed_limit = 100.0;  // [m/s], > 0: a faster node marks a diverged step
+  MassSpringIntegrator integrator = MassSpringIntegrator::kSymplecticEuler;
+  double cg_tolerance = 1e-8;   // implicit: relative residual |r|/|b| at which CG stops, > 0
+  int cg_max_iterations = 500;  // implicit: CG iterations per step at most, > 0
 };
 
 class MassSpringModel final : public TissueModel {
@@ -62,6 +75,10 @@ class MassSpringModel final : public TissueModel {
   void Advance(const StepInputs& inputs, TissueState* state) const override;
 
  private:
+  friend class MassSpringImplicitStep;
+  void AdvanceImplicit(const StepInputs& inputs, TissueState* state) const;
+  // Adds gravity, external forces and attachments to state forces (after InternalForces).
+  void AddExternalForces(const StepInputs& inputs, TissueState* state) const;
   MassSpringModel() = default;
   // Builds springs from unique edges of `elements` (each column one element of `corners` nodes)
   // with the element sizes given, then masses and damping.
@@ -79,6 +96,9 @@ class MassSpringModel final : public TissueModel {
   std::vector<double> damping_;             // [N s/m]
   std::vector<int32_t> node_spring_start_;  // num_nodes + 1, CSR of springs per node
   std::vector<int32_t> node_springs_;
+  MassSpringIntegrator integrator_ = MassSpringIntegrator::kSymplecticEuler;
+  double cg_tolerance_ = 1e-8;
+  int cg_max_iterations_ = 500;
 };
 
 }  // namespace somasim::models

@@ -44,9 +44,11 @@ enum class StepStatus {
 const char* StepStatusName(StepStatus status);
 
 struct StepCounters {
-  int64_t steps = 0;           // accepted steps
-  int64_t rejected_steps = 0;  // steps rolled back because they diverged
-  int64_t bad_inputs = 0;      // steps refused because of their inputs
+  int64_t steps = 0;               // accepted steps
+  int64_t rejected_steps = 0;      // steps rolled back because they diverged
+  int64_t bad_inputs = 0;          // steps refused because of their inputs
+  int64_t solver_iterations = 0;   // iterations of the model's linear or constraint solver
+  int64_t solver_unconverged = 0;  // steps whose solver stopped at its iteration limit
 };
 
 // The mutable part of a model: what a snapshot, a replay or a rollback needs. Models derive from

@@ -260,6 +260,123 @@ TEST(MassSpringModel, FixedAndPrescribedNodesFollowTheirInputs) {
   EXPECT_LT(state->positions(2, 150), rest(2, 150));  // the rest falls under gravity
 }
 
+// Nodes of `mesh` whose coordinate `axis` is within `tolerance` [m] of its extreme (max if
+// `upper`), e.g. the top edge of the plate.
+std::vector<int32_t> NodesAtExtreme(const mesh::Points& points, int axis, bool upper,
+                                    double tolerance) {
+  const double extreme = upper ? points.row(axis).maxCoeff() : points.row(axis).minCoeff();
+  std::vector<int32_t> nodes;
+  for (Eigen::Index i = 0; i < points.cols(); ++i) {
+    if (std::abs(points(axis, i) - extreme) <= tolerance) nodes.push_back(static_cast<int32_t>(i));
+  }
+  return nodes;
+}
+
+TEST(MassSpringModel, ImplicitEulerIsStableWhereExplicitDiverges) {
+  const mesh_gen::BuiltinOrgan liver = mesh_gen::GenerateBuiltinOrgan("liver288");
+  MassSpringParameters p;
+  p.youngs_modulus = 2e5;  // stiff tissue [Pa]
+  p.density = 1050.0;
+  p.damping_ratio = 0.05;
+  const std::vector<int32_t> fixed = NodesAtExtreme(liver.volume.vertices, 0, false, 0.02);
+  ASSERT_GE(fixed.size(), 3u);
+  StepInputs inputs;
+  inputs.dt = 1e-3;  // [s], the server's physics step
+  inputs.gravity = Vector3d(0.0, 0.0, -9.81);
+  inputs.fixed_nodes = fixed;
+
+  const auto explicit_model = MassSpringModel::FromTetMesh(liver.volume, p);
+  ASSERT_GT(inputs.dt, SafeStep(*explicit_model, 2.0));  // past the explicit limit
+  const auto explicit_state = explicit_model->MakeState();
+  StepStatus status = StepStatus::kOk;
+  for (int step = 0; step < 200 && status == StepStatus::kOk; ++step) {
+    status = explicit_model->Step(inputs, explicit_state.get());
+  }
+  EXPECT_NE(status, StepStatus::kOk);                  // diverged, detected ...
+  EXPECT_TRUE(explicit_state->positions.allFinite());  // ... and contained
+  EXPECT_EQ(explicit_state->counters.rejected_steps, 1);
+
+  p.integrator = MassSpringIntegrator::kImplicitEuler;
+  const auto implicit_model = MassSpringModel::FromTetMesh(liver.volume, p);
+  const auto state = implicit_model->MakeState();
+  for (int step = 0; step < 500; ++step) {
+    ASSERT_EQ(implicit_model->Step(inputs, state.get()), StepStatus::kOk) << "step " << step;
+  }
+  EXPECT_EQ(state->counters.solver_unconverged, 0);
+  const double sag = (state->positions - implicit_model->rest_positions()).row(2).minCoeff();
+  EXPECT_LT(sag, 0.0);    // it hangs ...
+  EXPECT_GT(sag, -0.05);  // ... by less than 5 cm
+}
+
+TEST(MassSpringModel, HangingPlateConvergesToStaticEquilibrium) {
+  // Seed 003's plate (E = 1 MPa), its top edge fixed, hanging under gravity in its own plane.
+  const mesh_gen::BuiltinOrgan plate = mesh_gen::GenerateBuiltinOrgan("plate192");
+  MassSpringParameters p;
+  p.youngs_modulus = 1e6;
+  p.density = 1000.0;
+  p.damping_ratio = 0.2;
+  p.integrator = MassSpringIntegrator::kImplicitEuler;
+  p.cg_tolerance = 1e-12;
+  p.cg_max_iterations = 5000;
+  const auto model = MassSpringModel::FromTetMesh(plate.volume, p);
+  const std::vector<int32_t> top = NodesAtExtreme(plate.volume.vertices, 1, true, 1e-9);
+  ASSERT_EQ(top.size(), 24u);  // 12 × 2 nodes on the edge y = 200 mm
+  // Large implicit steps damp every mode, the slow pendulum-like swings too (L-stability), so
+  // the state settles where the linearised step no longer moves it: the static solution.
+  StepInputs inputs;
+  inputs.dt = 0.05;
+  inputs.gravity = Vector3d(0.0, -9.81, 0.0);
+  inputs.fixed_nodes = top;
+  const auto state = model->MakeState();
+  for (int step = 0; step < 100; ++step) {
+    ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  }
+  EXPECT_EQ(state->counters.solver_unconverged, 0);
+  // At equilibrium the springs carry the weight: the net force on every free node vanishes.
+  mesh::Points forces(3, model->num_nodes());
+  state->velocities.setZero();
+  model->InternalForces(*state, &forces);
+  double weight = 0.0;
+  std::vector<bool> is_fixed(static_cast<size_t>(model->num_nodes()), false);
+  for (const int32_t node : top) is_fixed[static_cast<size_t>(node)] = true;
+  double worst = 0.0;
+  for (int32_t i = 0; i < model->num_nodes(); ++i) {
+    const double m = model->masses()[static_cast<size_t>(i)];
+    weight += m * 9.81;
+    if (is_fixed[static_cast<size_t>(i)]) continue;
+    worst = std::max(worst, (forces.col(i) + m * inputs.gravity).norm());
+  }
+  EXPECT_LT(worst, 1e-9 * weight);
+  // The supports of the fixed edge carry the whole weight: their reaction, minus the net force
+  // on the fixed nodes, points up and equals it.
+  double reaction = 0.0;
+  for (const int32_t node : top) {
+    reaction -= forces(1, node) + model->masses()[static_cast<size_t>(node)] * inputs.gravity.y();
+  }
+  EXPECT_NEAR(reaction, weight, 1e-6 * weight);
+}
+
+TEST(MassSpringModel, ImplicitStepAllocatesNothing) {
+  const mesh_gen::BuiltinOrgan kidney = mesh_gen::GenerateBuiltinOrgan("kidney424");
+  MassSpringParameters p;
+  p.youngs_modulus = 5e4;
+  p.integrator = MassSpringIntegrator::kImplicitEuler;
+  const auto model = MassSpringModel::FromTetMesh(kidney.volume, p);
+  const auto state = model->MakeState();
+  const int32_t fixed[] = {0, 1, 2};
+  const Attachment grasp[] = {{11, state->positions.col(11) + Vector3d(0, 0, 0.002), 50.0}};
+  StepInputs inputs;
+  inputs.gravity = Vector3d(0, 0, -9.81);
+  inputs.fixed_nodes = fixed;
+  inputs.attachments = grasp;
+  ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  const testing::AllocationCounter allocations;
+  for (int step = 0; step < 20; ++step)
+    ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  EXPECT_EQ(allocations.count(), 0);
+  EXPECT_GT(state->counters.solver_iterations, 0);
+}
+
 TEST(MassSpringModel, BadStepInputsAreRefusedAndChangeNothing) {
   const auto model = OrganModel("plate192", 0.1);
   const auto state = model->MakeState();
