@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cassert>
 #include <cmath>
 #include <stdexcept>
 #include <string>
@@ -275,6 +276,7 @@ std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
 
 void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
   // Seed 002 eq. 1–3: f_i += K (l - l0) u + D ((v_j - v_i)·u) u, u = (x_j - x_i) / l; f_j -= ….
+  forces->resize(3, rest_.cols());  // a no-op (no allocation) when already sized
   forces->setZero();
   const double* x = state.positions.data();
   const double* v = state.velocities.data();
@@ -486,6 +488,7 @@ void MassSpringModel::AdvanceImplicit(const StepInputs& inputs, TissueState* bas
 }
 
 Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_t node) const {
+  assert(node >= 0 && node < num_nodes());
   // -∂f_i/∂x_i of each incident spring: k [u uᵀ + (1 - l0/l)(I - u uᵀ)] (elastic part).
   Eigen::Matrix3d k_local = Eigen::Matrix3d::Zero();
   for (int32_t e = node_spring_start_[static_cast<size_t>(node)];
