@@ -278,13 +278,31 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   // Seed 002 eq. 1–3: f_i += K (l - l0) u + D ((v_j - v_i)·u) u, u = (x_j - x_i) / l; f_j -= ….
   forces->resize(3, rest_.cols());  // a no-op (no allocation) when already sized
   forces->setZero();
-  const double* x = state.positions.data();
-  const double* v = state.velocities.data();
-  double* f = forces->data();
+  // Raw pointers hoisted out of the loop and marked non-aliasing, so that stores to f do not make
+  // the compiler reload the member vectors' data pointers.
+  const double* __restrict x = state.positions.data();
+  const double* __restrict v = state.velocities.data();
+  double* __restrict f = forces->data();
+  const int32_t* __restrict spring_i = spring_i_.data();
+  const int32_t* __restrict spring_j = spring_j_.data();
+  const double* __restrict rest_length = rest_length_.data();
+  const double* __restrict stiffness = stiffness_.data();
+  const double* __restrict damping = damping_.data();
   const size_t m = spring_i_.size();
+  // Springs are sorted by their first node, so its force is summed in registers and stored once
+  // per node: a read-modify-write of f[i] per spring would chain every spring behind the last.
+  size_t current = m > 0 ? 3 * static_cast<size_t>(spring_i[0]) : 0;
+  double fx = 0.0, fy = 0.0, fz = 0.0;
   for (size_t s = 0; s < m; ++s) {
-    const size_t i = 3 * static_cast<size_t>(spring_i_[s]);
-    const size_t j = 3 * static_cast<size_t>(spring_j_[s]);
+    const size_t i = 3 * static_cast<size_t>(spring_i[s]);
+    const size_t j = 3 * static_cast<size_t>(spring_j[s]);
+    if (i != current) {
+      f[current] += fx;
+      f[current + 1] += fy;
+      f[current + 2] += fz;
+      fx = fy = fz = 0.0;
+      current = i;
+    }
     const double dx = x[j] - x[i];
     const double dy = x[j + 1] - x[i + 1];
     const double dz = x[j + 2] - x[i + 2];
@@ -293,13 +311,18 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
     const double ux = dx * inv, uy = dy * inv, uz = dz * inv;
     const double closing =
         (v[j] - v[i]) * ux + (v[j + 1] - v[i + 1]) * uy + (v[j + 2] - v[i + 2]) * uz;
-    const double magnitude = stiffness_[s] * (length - rest_length_[s]) + damping_[s] * closing;
-    f[i] += magnitude * ux;
-    f[i + 1] += magnitude * uy;
-    f[i + 2] += magnitude * uz;
+    const double magnitude = stiffness[s] * (length - rest_length[s]) + damping[s] * closing;
+    fx += magnitude * ux;
+    fy += magnitude * uy;
+    fz += magnitude * uz;
     f[j] -= magnitude * ux;
     f[j + 1] -= magnitude * uy;
     f[j + 2] -= magnitude * uz;
+  }
+  if (m > 0) {
+    f[current] += fx;
+    f[current + 1] += fy;
+    f[current + 2] += fz;
   }
 }
 
@@ -342,13 +365,28 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   }
   auto* state = static_cast<MassSpringState*>(base);
   InternalForces(*state, &state->forces);
-  AddExternalForces(inputs, state);
-  // Symplectic Euler (seed 002 eq. 4–5): v += dt f / m, then x += dt v.
+  if (inputs.external_forces != nullptr) state->forces += *inputs.external_forces;
+  for (const Attachment& a : inputs.attachments) {
+    state->forces.col(a.node) += a.stiffness * (a.target - state->positions.col(a.node));
+  }
+  // Symplectic Euler (seed 002 eq. 4–5) with gravity: v += dt (f/m + g), then x += dt v.
+  // Massless nodes (inverse mass 0) do not move.
   const double dt = inputs.dt;
-  const Eigen::Index n = rest_.cols();
-  for (Eigen::Index i = 0; i < n; ++i) {
-    state->velocities.col(i) += (dt * inverse_mass_[static_cast<size_t>(i)]) * state->forces.col(i);
-    state->positions.col(i) += dt * state->velocities.col(i);
+  const auto n = static_cast<size_t>(rest_.cols());
+  const double* __restrict f = state->forces.data();
+  const double* __restrict inverse_mass = inverse_mass_.data();
+  double* __restrict x = state->positions.data();
+  double* __restrict v = state->velocities.data();
+  const double gx = inputs.gravity.x(), gy = inputs.gravity.y(), gz = inputs.gravity.z();
+  for (size_t i = 0; i < n; ++i) {
+    const double w = inverse_mass[i];
+    const double moves = w > 0.0 ? 1.0 : 0.0;
+    v[3 * i] += dt * (w * f[3 * i] + moves * gx);
+    v[3 * i + 1] += dt * (w * f[3 * i + 1] + moves * gy);
+    v[3 * i + 2] += dt * (w * f[3 * i + 2] + moves * gz);
+    x[3 * i] += dt * v[3 * i];
+    x[3 * i + 1] += dt * v[3 * i + 1];
+    x[3 * i + 2] += dt * v[3 * i + 2];
   }
   ApplyConstraints(inputs, state);
 }

@@ -1,5 +1,6 @@
 #include "server/models/tissue_model.h"
 
+#include <algorithm>
 #include <cmath>
 
 namespace somasim::models {
@@ -53,14 +54,22 @@ StepStatus TissueModel::Step(const StepInputs& inputs, TissueState* state) const
 
   Advance(inputs, state);
 
+  // One pass over the raw arrays: a NaN or infinity anywhere, or a node faster than the limit.
   StepStatus status = StepStatus::kOk;
   const double limit2 = speed_limit_ * speed_limit_;
-  for (Eigen::Index i = 0; i < n && status == StepStatus::kOk; ++i) {
-    if (!state->positions.col(i).allFinite() || !state->velocities.col(i).allFinite()) {
-      status = StepStatus::kRejectedNonFinite;
-    } else if (state->velocities.col(i).squaredNorm() > limit2) {
-      status = StepStatus::kRejectedTooFast;
-    }
+  const double* x = state->positions.data();
+  const double* v = state->velocities.data();
+  double fastest2 = 0.0;
+  double sum = 0.0;  // NaN or infinite if any position or velocity is
+  for (Eigen::Index i = 0; i < 3 * static_cast<Eigen::Index>(n); i += 3) {
+    const double speed2 = v[i] * v[i] + v[i + 1] * v[i + 1] + v[i + 2] * v[i + 2];
+    fastest2 = std::max(fastest2, speed2);
+    sum += (x[i] + x[i + 1] + x[i + 2]) * 0.0 + speed2 * 0.0;
+  }
+  if (!std::isfinite(sum) || !std::isfinite(fastest2)) {
+    status = StepStatus::kRejectedNonFinite;
+  } else if (fastest2 > limit2) {
+    status = StepStatus::kRejectedTooFast;
   }
   if (status != StepStatus::kOk) {
     state->positions = state->last_good_positions_;  // same size: no allocation
