@@ -192,6 +192,7 @@ std::unique_ptr<MassSpringModel> MassSpringModel::FromEdges(
     }
     ordered.push_back({std::min(a, b), std::max(a, b)});
   }
+  std::sort(ordered.begin(), ordered.end());  // the force loop runs over springs by first node
   std::unique_ptr<MassSpringModel> model(new MassSpringModel());
   model->Build(rest, ordered, std::vector<double>(ordered.size(), 0.0),
                std::vector<double>(static_cast<size_t>(rest.cols()), 0.0), parameters);
@@ -236,6 +237,10 @@ void MassSpringModel::Build(const mesh::Points& rest,
     const double reduced = mi + mj > 0.0 ? mi * mj / (mi + mj) : 0.0;
     damping_[s] = 2.0 * p.damping_ratio * std::sqrt(stiffness_[s] * reduced);
   }
+  // Springs come sorted by (i, j): the springs whose first node is i are one run.
+  first_node_start_.assign(n + 1, 0);
+  for (size_t s = 0; s < m; ++s) ++first_node_start_[static_cast<size_t>(spring_i_[s]) + 1];
+  for (size_t i = 0; i < n; ++i) first_node_start_[i + 1] += first_node_start_[i];
   node_spring_start_.assign(n + 1, 0);
   for (size_t s = 0; s < m; ++s) {
     ++node_spring_start_[static_cast<size_t>(spring_i_[s]) + 1];
@@ -283,46 +288,41 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   const double* __restrict x = state.positions.data();
   const double* __restrict v = state.velocities.data();
   double* __restrict f = forces->data();
-  const int32_t* __restrict spring_i = spring_i_.data();
   const int32_t* __restrict spring_j = spring_j_.data();
   const double* __restrict rest_length = rest_length_.data();
   const double* __restrict stiffness = stiffness_.data();
   const double* __restrict damping = damping_.data();
-  const size_t m = spring_i_.size();
-  // Springs are sorted by their first node, so its force is summed in registers and stored once
-  // per node: a read-modify-write of f[i] per spring would chain every spring behind the last.
-  size_t current = m > 0 ? 3 * static_cast<size_t>(spring_i[0]) : 0;
-  double fx = 0.0, fy = 0.0, fz = 0.0;
-  for (size_t s = 0; s < m; ++s) {
-    const size_t i = 3 * static_cast<size_t>(spring_i[s]);
-    const size_t j = 3 * static_cast<size_t>(spring_j[s]);
-    if (i != current) {
-      f[current] += fx;
-      f[current + 1] += fy;
-      f[current + 2] += fz;
-      fx = fy = fz = 0.0;
-      current = i;
+  const int32_t* __restrict first_start = first_node_start_.data();
+  const auto n = static_cast<size_t>(rest_.cols());
+  // Springs are sorted by their first node i: for each i, its springs form one run, whose force
+  // on i is summed in registers and stored once (a read-modify-write of f[i] per spring would
+  // chain every spring behind the last).
+  for (size_t node = 0; node < n; ++node) {
+    const size_t i = 3 * node;
+    const double xi = x[i], yi = x[i + 1], zi = x[i + 2];
+    const double vxi = v[i], vyi = v[i + 1], vzi = v[i + 2];
+    double fx = 0.0, fy = 0.0, fz = 0.0;
+    const auto end = static_cast<size_t>(first_start[node + 1]);
+    for (auto s = static_cast<size_t>(first_start[node]); s < end; ++s) {
+      const size_t j = 3 * static_cast<size_t>(spring_j[s]);
+      const double dx = x[j] - xi;
+      const double dy = x[j + 1] - yi;
+      const double dz = x[j + 2] - zi;
+      const double length = std::sqrt(dx * dx + dy * dy + dz * dz);
+      const double inv = length > 0.0 ? 1.0 / length : 0.0;
+      const double ux = dx * inv, uy = dy * inv, uz = dz * inv;
+      const double closing = (v[j] - vxi) * ux + (v[j + 1] - vyi) * uy + (v[j + 2] - vzi) * uz;
+      const double magnitude = stiffness[s] * (length - rest_length[s]) + damping[s] * closing;
+      fx += magnitude * ux;
+      fy += magnitude * uy;
+      fz += magnitude * uz;
+      f[j] -= magnitude * ux;
+      f[j + 1] -= magnitude * uy;
+      f[j + 2] -= magnitude * uz;
     }
-    const double dx = x[j] - x[i];
-    const double dy = x[j + 1] - x[i + 1];
-    const double dz = x[j + 2] - x[i + 2];
-    const double length = std::sqrt(dx * dx + dy * dy + dz * dz);
-    const double inv = length > 0.0 ? 1.0 / length : 0.0;
-    const double ux = dx * inv, uy = dy * inv, uz = dz * inv;
-    const double closing =
-        (v[j] - v[i]) * ux + (v[j + 1] - v[i + 1]) * uy + (v[j + 2] - v[i + 2]) * uz;
-    const double magnitude = stiffness[s] * (length - rest_length[s]) + damping[s] * closing;
-    fx += magnitude * ux;
-    fy += magnitude * uy;
-    fz += magnitude * uz;
-    f[j] -= magnitude * ux;
-    f[j + 1] -= magnitude * uy;
-    f[j + 2] -= magnitude * uz;
-  }
-  if (m > 0) {
-    f[current] += fx;
-    f[current + 1] += fy;
-    f[current + 2] += fz;
+    f[i] += fx;
+    f[i + 1] += fy;
+    f[i + 2] += fz;
   }
 }
 
