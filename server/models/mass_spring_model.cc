@@ -8,7 +8,7 @@
 #include <string>
 #include <vector>
 
-#include "common/mesh/geometry.h"
+#include "server/models/particle_mesh.h"
 
 namespace somasim::models {
 namespace {
@@ -58,115 +58,23 @@ void CheckParameters(const MassSpringParameters& p) {
   }
 }
 
-void CheckPoints(const mesh::Points& points) {
-  if (points.cols() == 0) throw std::invalid_argument("mass-spring: the mesh has no nodes");
-  for (Eigen::Index i = 0; i < points.cols(); ++i) {
-    if (!points.col(i).allFinite()) {
-      throw std::invalid_argument("mass-spring: node " + std::to_string(i) +
-                                  " has a non-finite coordinate");
-    }
-  }
-}
-
-// Unique edges of the elements (rows of `corners` nodes), each with the sum of the sizes of the
-// elements that contain it; the size of each element is spread over its corners as node sizes.
-template <int kCorners>
-void CollectEdges(const Eigen::Matrix<int32_t, kCorners, Eigen::Dynamic>& elements,
-                  const std::vector<double>& element_size, Eigen::Index num_nodes,
-                  std::vector<std::array<int32_t, 2>>* edges, std::vector<double>* edge_size,
-                  std::vector<double>* node_size) {
-  struct Entry {
-    std::array<int32_t, 2> edge;
-    double size;
-  };
-  std::vector<Entry> entries;
-  node_size->assign(static_cast<size_t>(num_nodes), 0.0);
-  for (Eigen::Index e = 0; e < elements.cols(); ++e) {
-    for (int a = 0; a < kCorners; ++a) {
-      const int32_t na = elements(a, e);
-      if (na < 0 || na >= num_nodes) {
-        throw std::invalid_argument("mass-spring: element " + std::to_string(e) + " uses node " +
-                                    std::to_string(na) + ", outside 0.." +
-                                    std::to_string(num_nodes - 1));
-      }
-      (*node_size)[static_cast<size_t>(na)] += element_size[static_cast<size_t>(e)] / kCorners;
-      for (int b = a + 1; b < kCorners; ++b) {
-        const int32_t nb = elements(b, e);
-        entries.push_back(
-            {{std::min(na, nb), std::max(na, nb)}, element_size[static_cast<size_t>(e)]});
-      }
-    }
-  }
-  std::sort(entries.begin(), entries.end(),
-            [](const Entry& x, const Entry& y) { return x.edge < y.edge; });
-  edges->clear();
-  edge_size->clear();
-  for (const Entry& entry : entries) {
-    if (!edges->empty() && edges->back() == entry.edge) {
-      edge_size->back() += entry.size;
-    } else {
-      edges->push_back(entry.edge);
-      edge_size->push_back(entry.size);
-    }
-  }
-}
-
 }  // namespace
 
 std::unique_ptr<MassSpringModel> MassSpringModel::FromTetMesh(
     const mesh::TetMesh& mesh, const MassSpringParameters& parameters) {
   CheckParameters(parameters);
-  CheckPoints(mesh.vertices);
-  if (mesh.tetrahedra.cols() == 0) {
-    throw std::invalid_argument("mass-spring: the mesh has no tetrahedra");
-  }
-  std::vector<double> volume(static_cast<size_t>(mesh.tetrahedra.cols()));
-  for (Eigen::Index t = 0; t < mesh.tetrahedra.cols(); ++t) {
-    for (int c = 0; c < 4; ++c) {
-      const int32_t node = mesh.tetrahedra(c, t);
-      if (node < 0 || node >= mesh.vertices.cols()) {
-        throw std::invalid_argument("mass-spring: tetrahedron " + std::to_string(t) +
-                                    " uses node " + std::to_string(node) + ", outside the mesh");
-      }
-    }
-    volume[static_cast<size_t>(t)] =
-        std::abs(mesh::TetSignedVolume(mesh.vertices, mesh.tetrahedra.col(t)));
-  }
-  std::vector<std::array<int32_t, 2>> edges;
-  std::vector<double> edge_size, node_size;
-  CollectEdges<4>(mesh.tetrahedra, volume, mesh.vertices.cols(), &edges, &edge_size, &node_size);
+  const MeshEdges edges = TetMeshEdges(mesh, "mass-spring");
   std::unique_ptr<MassSpringModel> model(new MassSpringModel());
-  model->Build(mesh.vertices, edges, edge_size, node_size, parameters);
+  model->Build(mesh.vertices, edges.edges, edges.edge_size, edges.node_size, parameters);
   return model;
 }
 
 std::unique_ptr<MassSpringModel> MassSpringModel::FromSurface(
     const mesh::SurfaceMesh& surface, const MassSpringParameters& parameters) {
   CheckParameters(parameters);
-  CheckPoints(surface.vertices);
-  if (surface.triangles.cols() == 0) {
-    throw std::invalid_argument("mass-spring: the surface has no triangles");
-  }
-  std::vector<double> shell_volume(static_cast<size_t>(surface.triangles.cols()));
-  for (Eigen::Index t = 0; t < surface.triangles.cols(); ++t) {
-    for (int c = 0; c < 3; ++c) {
-      const int32_t node = surface.triangles(c, t);
-      if (node < 0 || node >= surface.vertices.cols()) {
-        throw std::invalid_argument("mass-spring: triangle " + std::to_string(t) + " uses node " +
-                                    std::to_string(node) + ", outside the mesh");
-      }
-    }
-    const Vector3d a = surface.vertices.col(surface.triangles(0, t));
-    const Vector3d b = surface.vertices.col(surface.triangles(1, t));
-    const Vector3d c = surface.vertices.col(surface.triangles(2, t));
-    shell_volume[static_cast<size_t>(t)] = 0.5 * (b - a).cross(c - a).norm() * parameters.thickness;
-  }
-  std::vector<std::array<int32_t, 2>> edges;
-  std::vector<double> edge_size, node_size;
-  CollectEdges<3>(surface.triangles, shell_volume, surface.vertices.cols(), &edges, &edge_size,
-                  &node_size);
+  const MeshEdges edges = SurfaceEdges(surface, parameters.thickness, "mass-spring");
   std::unique_ptr<MassSpringModel> model(new MassSpringModel());
-  model->Build(surface.vertices, edges, edge_size, node_size, parameters);
+  model->Build(surface.vertices, edges.edges, edges.edge_size, edges.node_size, parameters);
   return model;
 }
 
@@ -174,7 +82,7 @@ std::unique_ptr<MassSpringModel> MassSpringModel::FromEdges(
     const mesh::Points& rest, const std::vector<std::array<int32_t, 2>>& edges,
     const MassSpringParameters& parameters) {
   CheckParameters(parameters);
-  CheckPoints(rest);
+  CheckFinitePoints(rest, "mass-spring");
   if (!(parameters.spring_stiffness > 0.0) || !(parameters.node_mass > 0.0)) {
     throw std::invalid_argument(
         "mass-spring: springs given as edges need spring_stiffness and node_mass > 0");
@@ -338,26 +246,6 @@ void MassSpringModel::AddExternalForces(const StepInputs& inputs, TissueState* b
   }
 }
 
-namespace {
-
-// Holds fixed nodes still and moves prescribed ones, after the integrator moved every node.
-void ApplyConstraints(const StepInputs& inputs, TissueState* state) {
-  const double dt = inputs.dt;
-  for (const int32_t node : inputs.fixed_nodes) {
-    state->positions.col(node) -= dt * state->velocities.col(node);
-    state->velocities.col(node).setZero();
-  }
-  for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
-    const int32_t node = inputs.prescribed_nodes[k];
-    const Vector3d target = inputs.prescribed_positions->col(static_cast<Eigen::Index>(k));
-    const Vector3d before = state->positions.col(node) - dt * state->velocities.col(node);
-    state->velocities.col(node) = (target - before) / dt;
-    state->positions.col(node) = target;
-  }
-}
-
-}  // namespace
-
 void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const {
   if (integrator_ == MassSpringIntegrator::kImplicitEuler) {
     AdvanceImplicit(inputs, base);
@@ -388,7 +276,7 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
     x[3 * i + 1] += dt * v[3 * i + 1];
     x[3 * i + 2] += dt * v[3 * i + 2];
   }
-  ApplyConstraints(inputs, state);
+  ApplyFixedAndPrescribed(inputs, state);
 }
 
 // The linear operator of a spring network: out = mass_coeff M in + Σ_s B_s (in_i - in_j) on i,
@@ -522,7 +410,7 @@ void MassSpringModel::AdvanceImplicit(const StepInputs& inputs, TissueState* bas
 
   state->velocities += state->dv;
   state->positions += dt * state->velocities;
-  ApplyConstraints(inputs, state);
+  ApplyFixedAndPrescribed(inputs, state);
 }
 
 Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_t node) const {

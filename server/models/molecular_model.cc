@@ -8,6 +8,8 @@
 #include <string>
 #include <vector>
 
+#include "server/models/particle_mesh.h"
+
 namespace somasim::models {
 namespace {
 
@@ -161,23 +163,6 @@ void BuildIncidence(size_t num_nodes, size_t num_items, NodesOf nodes_of,
   }
 }
 
-// Holds fixed nodes still and moves prescribed ones, after the integrator moved every node (as
-// the mass-spring model does).
-void ApplyConstraints(const StepInputs& inputs, TissueState* state) {
-  const double dt = inputs.dt;
-  for (const int32_t node : inputs.fixed_nodes) {
-    state->positions.col(node) -= dt * state->velocities.col(node);
-    state->velocities.col(node).setZero();
-  }
-  for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
-    const int32_t node = inputs.prescribed_nodes[k];
-    const Vector3d target = inputs.prescribed_positions->col(static_cast<Eigen::Index>(k));
-    const Vector3d before = state->positions.col(node) - dt * state->velocities.col(node);
-    state->velocities.col(node) = (target - before) / dt;
-    state->positions.col(node) = target;
-  }
-}
-
 }  // namespace
 
 std::unique_ptr<MolecularModel> MolecularModel::FromSurface(const mesh::SurfaceMesh& surface,
@@ -185,56 +170,12 @@ std::unique_ptr<MolecularModel> MolecularModel::FromSurface(const mesh::SurfaceM
   CheckParameters(p);
   const mesh::Points& x = surface.vertices;
   const Eigen::Index n = x.cols();
-  if (n == 0) throw std::invalid_argument("molecular: the surface has no nodes");
-  for (Eigen::Index i = 0; i < n; ++i) {
-    if (!x.col(i).allFinite()) {
-      throw std::invalid_argument("molecular: node " + std::to_string(i) +
-                                  " has a non-finite coordinate");
-    }
-  }
-  const Eigen::Index num_triangles = surface.triangles.cols();
-  if (num_triangles == 0) throw std::invalid_argument("molecular: the surface has no triangles");
-
   // Unique edges (bonds), each with the shell volume Σ area · thickness of its triangles, and the
   // shell volume lumped on the nodes, a third per corner.
-  struct Entry {
-    std::array<int32_t, 2> edge;
-    double size;
-  };
-  std::vector<Entry> entries;
-  entries.reserve(3 * static_cast<size_t>(num_triangles));
-  std::vector<double> node_size(static_cast<size_t>(n), 0.0);
-  for (Eigen::Index t = 0; t < num_triangles; ++t) {
-    for (int c = 0; c < 3; ++c) {
-      const int32_t node = surface.triangles(c, t);
-      if (node < 0 || node >= n) {
-        throw std::invalid_argument("molecular: triangle " + std::to_string(t) + " uses node " +
-                                    std::to_string(node) + ", outside 0.." + std::to_string(n - 1));
-      }
-    }
-    const Vector3d a = x.col(surface.triangles(0, t));
-    const Vector3d b = x.col(surface.triangles(1, t));
-    const Vector3d c = x.col(surface.triangles(2, t));
-    const double size = 0.5 * (b - a).cross(c - a).norm() * p.thickness;
-    for (int k = 0; k < 3; ++k) {
-      const int32_t i = surface.triangles(k, t);
-      const int32_t j = surface.triangles((k + 1) % 3, t);
-      node_size[static_cast<size_t>(i)] += size / 3.0;
-      entries.push_back({{std::min(i, j), std::max(i, j)}, size});
-    }
-  }
-  std::sort(entries.begin(), entries.end(),
-            [](const Entry& l, const Entry& r) { return l.edge < r.edge; });
-  std::vector<std::array<int32_t, 2>> edges;
-  std::vector<double> edge_size;
-  for (const Entry& entry : entries) {
-    if (!edges.empty() && edges.back() == entry.edge) {
-      edge_size.back() += entry.size;
-    } else {
-      edges.push_back(entry.edge);
-      edge_size.push_back(entry.size);
-    }
-  }
+  const MeshEdges mesh_edges = SurfaceEdges(surface, p.thickness, "molecular");
+  const std::vector<std::array<int32_t, 2>>& edges = mesh_edges.edges;
+  const std::vector<double>& edge_size = mesh_edges.edge_size;
+  const std::vector<double>& node_size = mesh_edges.node_size;
 
   std::unique_ptr<MolecularModel> model(new MolecularModel());
   MolecularModel& m = *model;
@@ -278,7 +219,7 @@ std::unique_ptr<MolecularModel> MolecularModel::FromSurface(const mesh::SurfaceM
   };
 
   // Angles: one per triangle corner (seed 002 Fig. 3), seed 002 eq. 9 and 11.
-  const size_t num_angles = 3 * static_cast<size_t>(num_triangles);
+  const size_t num_angles = 3 * static_cast<size_t>(surface.triangles.cols());
   for (std::vector<int32_t>* v : {&m.angle_corner_, &m.angle_p_, &m.angle_q_}) {
     v->resize(num_angles);
   }
@@ -286,7 +227,7 @@ std::unique_ptr<MolecularModel> MolecularModel::FromSurface(const mesh::SurfaceM
        {&m.angle_rest_cos_, &m.angle_rest_a_, &m.angle_rest_b_, &m.angle_k_, &m.stretch_bend_k_}) {
     v->resize(num_angles);
   }
-  for (Eigen::Index t = 0; t < num_triangles; ++t) {
+  for (Eigen::Index t = 0; t < surface.triangles.cols(); ++t) {
     for (int k = 0; k < 3; ++k) {
       const auto angle = 3 * static_cast<size_t>(t) + static_cast<size_t>(k);
       const int32_t c = surface.triangles(k, t);
@@ -501,7 +442,7 @@ void MolecularModel::Advance(const StepInputs& inputs, TissueState* base) const 
       x[3 * i + k] += dt * v[3 * i + k];
     }
   }
-  ApplyConstraints(inputs, state);
+  ApplyFixedAndPrescribed(inputs, state);
 }
 
 }  // namespace somasim::models

@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "common/mesh/geometry.h"
+#include "server/models/particle_mesh.h"
 
 namespace somasim::models {
 namespace {
@@ -83,106 +84,23 @@ void CheckParameters(const PositionBasedParameters& p) {
   if (!(p.speed_limit > 0.0)) Refuse("speed_limit [m/s] must be > 0");
 }
 
-void CheckPoints(const mesh::Points& points) {
-  if (points.cols() == 0) Refuse("the mesh has no nodes");
-  for (Eigen::Index i = 0; i < points.cols(); ++i) {
-    if (!points.col(i).allFinite()) {
-      Refuse("node " + std::to_string(i) + " has a non-finite coordinate");
-    }
-  }
-}
-
-// Unique edges of the elements (columns of kCorners nodes), each with the sum of the sizes of
-// the elements that contain it; each element's size is spread over its corners as node sizes.
-template <int kCorners>
-void CollectEdges(const Eigen::Matrix<int32_t, kCorners, Eigen::Dynamic>& elements,
-                  const std::vector<double>& element_size, Eigen::Index num_nodes,
-                  std::vector<std::array<int32_t, 2>>* edges, std::vector<double>* edge_size,
-                  std::vector<double>* node_size) {
-  struct Entry {
-    std::array<int32_t, 2> edge;
-    double size;
-  };
-  std::vector<Entry> entries;
-  node_size->assign(static_cast<size_t>(num_nodes), 0.0);
-  for (Eigen::Index e = 0; e < elements.cols(); ++e) {
-    for (int a = 0; a < kCorners; ++a) {
-      const int32_t na = elements(a, e);
-      (*node_size)[static_cast<size_t>(na)] += element_size[static_cast<size_t>(e)] / kCorners;
-      for (int b = a + 1; b < kCorners; ++b) {
-        const int32_t nb = elements(b, e);
-        entries.push_back(
-            {{std::min(na, nb), std::max(na, nb)}, element_size[static_cast<size_t>(e)]});
-      }
-    }
-  }
-  std::sort(entries.begin(), entries.end(),
-            [](const Entry& x, const Entry& y) { return x.edge < y.edge; });
-  edges->clear();
-  edge_size->clear();
-  for (const Entry& entry : entries) {
-    if (!edges->empty() && edges->back() == entry.edge) {
-      edge_size->back() += entry.size;
-    } else {
-      edges->push_back(entry.edge);
-      edge_size->push_back(entry.size);
-    }
-  }
-}
-
-template <int kCorners>
-void CheckElements(const Eigen::Matrix<int32_t, kCorners, Eigen::Dynamic>& elements,
-                   Eigen::Index num_nodes, const char* kind) {
-  if (elements.cols() == 0) Refuse(std::string("the mesh has no ") + kind + "s");
-  for (Eigen::Index e = 0; e < elements.cols(); ++e) {
-    for (int c = 0; c < kCorners; ++c) {
-      const int32_t node = elements(c, e);
-      if (node < 0 || node >= num_nodes) {
-        Refuse(std::string(kind) + " " + std::to_string(e) + " uses node " + std::to_string(node) +
-               ", outside 0.." + std::to_string(num_nodes - 1));
-      }
-    }
-  }
-}
-
 }  // namespace
 
 std::unique_ptr<PositionBasedModel> PositionBasedModel::FromTetMesh(
     const mesh::TetMesh& mesh, const PositionBasedParameters& parameters) {
   CheckParameters(parameters);
-  CheckPoints(mesh.vertices);
-  CheckElements<4>(mesh.tetrahedra, mesh.vertices.cols(), "tetrahedron");
-  std::vector<double> volume(static_cast<size_t>(mesh.tetrahedra.cols()));
-  for (Eigen::Index t = 0; t < mesh.tetrahedra.cols(); ++t) {
-    volume[static_cast<size_t>(t)] =
-        std::abs(mesh::TetSignedVolume(mesh.vertices, mesh.tetrahedra.col(t)));
-  }
-  std::vector<std::array<int32_t, 2>> edges;
-  std::vector<double> edge_size, node_size;
-  CollectEdges<4>(mesh.tetrahedra, volume, mesh.vertices.cols(), &edges, &edge_size, &node_size);
+  const MeshEdges edges = TetMeshEdges(mesh, "position-based");
   std::unique_ptr<PositionBasedModel> model(new PositionBasedModel());
-  model->Build(mesh.vertices, edges, edge_size, node_size, parameters);
+  model->Build(mesh.vertices, edges.edges, edges.edge_size, edges.node_size, parameters);
   return model;
 }
 
 std::unique_ptr<PositionBasedModel> PositionBasedModel::FromSurface(
     const mesh::SurfaceMesh& surface, const PositionBasedParameters& parameters) {
   CheckParameters(parameters);
-  CheckPoints(surface.vertices);
-  CheckElements<3>(surface.triangles, surface.vertices.cols(), "triangle");
-  std::vector<double> shell_volume(static_cast<size_t>(surface.triangles.cols()));
-  for (Eigen::Index t = 0; t < surface.triangles.cols(); ++t) {
-    const Vector3d a = surface.vertices.col(surface.triangles(0, t));
-    const Vector3d b = surface.vertices.col(surface.triangles(1, t));
-    const Vector3d c = surface.vertices.col(surface.triangles(2, t));
-    shell_volume[static_cast<size_t>(t)] = 0.5 * (b - a).cross(c - a).norm() * parameters.thickness;
-  }
-  std::vector<std::array<int32_t, 2>> edges;
-  std::vector<double> edge_size, node_size;
-  CollectEdges<3>(surface.triangles, shell_volume, surface.vertices.cols(), &edges, &edge_size,
-                  &node_size);
+  const MeshEdges edges = SurfaceEdges(surface, parameters.thickness, "position-based");
   std::unique_ptr<PositionBasedModel> model(new PositionBasedModel());
-  model->Build(surface.vertices, edges, edge_size, node_size, parameters);
+  model->Build(surface.vertices, edges.edges, edges.edge_size, edges.node_size, parameters);
   return model;
 }
 
@@ -190,7 +108,7 @@ std::unique_ptr<PositionBasedModel> PositionBasedModel::FromEdges(
     const mesh::Points& rest, const std::vector<std::array<int32_t, 2>>& edges,
     const PositionBasedParameters& parameters) {
   CheckParameters(parameters);
-  CheckPoints(rest);
+  CheckFinitePoints(rest, "position-based");
   if (!(parameters.node_mass > 0.0)) Refuse("constraints given as edges need node_mass > 0");
   if (parameters.mode == PositionBasedMode::kXpbd && !(parameters.compliance > 0.0)) {
     Refuse("XPBD constraints given as edges need compliance > 0");
