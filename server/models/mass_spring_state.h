@@ -1,0 +1,27 @@
+// The mutable state of a mass-spring model (internal to server/models: the explicit and the
+// implicit integrators share it).
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <vector>
+
+#include "common/mesh/mesh_types.h"
+#include "server/models/tissue_model.h"
+
+namespace somasim::models {
+
+// The state of a mass-spring model: the base state plus the scratch of a step, all sized by
+// MakeState so that stepping allocates nothing.
+class MassSpringState final : public TissueState {
+ public:
+  mesh::Points forces;  // [N], 3 × num_nodes
+  // Implicit Euler only.
+  mesh::Points spring_direction;          // u, 3 × num_springs
+  std::vector<double> spring_transverse;  // (1 - l0/l)₊, num_springs
+  std::vector<uint8_t> constrained;       // fixed or prescribed this step, num_nodes
+  mesh::Points rhs, dv, residual, preconditioned, search, product;  // 3 × num_nodes each
+  Eigen::Matrix<double, 9, Eigen::Dynamic> inverse_diagonal;        // 3×3 blocks, num_nodes
+};
+
+}  // namespace somasim::models
