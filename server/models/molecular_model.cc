@@ -4,11 +4,18 @@
 #include <array>
 #include <cassert>
 #include <cmath>
+#include <cstddef>
+#include <limits>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
 #include "server/models/particle_mesh.h"
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#define SOMASIM_MOLECULAR_AVX512 1
+#endif
 
 namespace somasim::models {
 namespace {
@@ -144,6 +151,177 @@ void AngleHessian(const AngleGeometry& g, const AngleCoefficients& c, double k_a
           k_stretch_bend * (g.ca * g.ub.transpose() + g.ua * g.cb.transpose()) + c.a * cab;
 }
 
+// The per-step triangle kernel (see the header). A triangle (n0, n1, n2) has edges
+// E_k = x_{n(k+1)} - x_{nk} (k = 0, 1, 2, indices mod 3), each with length r_k, unit vector u_k,
+// stretch δ_k = r_k - r0_k; its energy is, seed 002 eq. 6, 9, 11,
+//   Φ_t = Σ_k ½ K'_k δ_k²  +  Σ_corners k [½ K_θ Δc_k² + K_bθ Δc_k (δ_k + δ_{k+2})],
+// with K'_k the bond's K_b shared evenly among its triangles, and the corner angle at n_k between
+// a = E_k and b = -E_{k+2}: cos θ_k = -u_k·u_{k+2}, Δc_k = cos θ_k - cos θ0_k. Its gradient with
+// respect to each edge vector is a combination of the three unit vectors,
+//   ∂Φ_t/∂E_k = G_k = Σ_m α_km u_m,
+// built from the corner formulas of AngleKernel (A = K_θ Δc + K_bθ S, B = K_bθ Δc):
+//   ∂Φ/∂a = (B - A cos θ / r_a) u_a + (A / r_a) u_b, ∂Φ/∂b = (A / r_b) u_a + (B - A cos θ / r_b)
+//   u_b,
+// plus the bond's K'_k δ_k and its damping D'_k (v_{k+1} - v_k)·u_k on α_kk (seed 002 eq. 8). As
+// Φ depends on x only through the edges, the forces are f_{nk} = G_k - G_{k+2}.
+constexpr size_t kBlock = 8;  // triangles per block (the AVX-512 width in doubles)
+enum TriangleField : size_t {
+  kBondK = 0,          // 3 fields, one per edge k: K'_k [N/m]
+  kBondDamping = 3,    // D'_k [N s/m]
+  kRestLength = 6,     // r0_k [m]
+  kRestCos = 9,        // 3 fields, one per corner k: cos θ0_k [-]
+  kAngleK = 12,        // K_θ [J]
+  kStretchBendK = 15,  // K_bθ [N]
+  kTriangleFields = 18,
+};
+
+// Multipliers (1 or 0) of the terms a force evaluation includes.
+struct TermScale {
+  double bond = 1.0, angle = 1.0, stretch_bend = 1.0;
+};
+
+TermScale ScaleOf(uint32_t terms) {
+  return {(terms & MolecularModel::kBond) != 0 ? 1.0 : 0.0,
+          (terms & MolecularModel::kAngle) != 0 ? 1.0 : 0.0,
+          (terms & MolecularModel::kStretchBend) != 0 ? 1.0 : 0.0};
+}
+
+// Triangle `lane` of a block: `nodes` its 3 · kBlock coordinate offsets, `c` its kTriangleFields ·
+// kBlock constants. Adds the triangle's forces [N] to f.
+void ScalarTriangle(const double* x, const double* v, double* f, const int32_t* nodes,
+                    const double* c, size_t lane, const TermScale& scale) {
+  size_t at[3];
+  for (size_t k = 0; k < 3; ++k) at[k] = static_cast<size_t>(nodes[k * kBlock + lane]);
+  double u[3][3], inverse[3], stretch[3], alpha[3][3] = {};
+  for (size_t k = 0; k < 3; ++k) {
+    const size_t i = at[k], j = at[(k + 1) % 3];
+    const double d[3] = {x[j] - x[i], x[j + 1] - x[i + 1], x[j + 2] - x[i + 2]};
+    const double r = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+    inverse[k] = r > 0.0 ? 1.0 / r : 0.0;
+    double closing = 0.0;
+    for (size_t e = 0; e < 3; ++e) {
+      u[k][e] = d[e] * inverse[k];
+      closing += (v[j + e] - v[i + e]) * u[k][e];
+    }
+    stretch[k] = r - c[(kRestLength + k) * kBlock + lane];
+    alpha[k][k] = scale.bond * (c[(kBondK + k) * kBlock + lane] * stretch[k] +
+                                c[(kBondDamping + k) * kBlock + lane] * closing);
+  }
+  for (size_t k = 0; k < 3; ++k) {
+    const size_t m = (k + 2) % 3;  // a = E_k, b = -E_m
+    const double cos = -(u[k][0] * u[m][0] + u[k][1] * u[m][1] + u[k][2] * u[m][2]);
+    const double dc = cos - c[(kRestCos + k) * kBlock + lane];
+    const double k_angle = scale.angle * c[(kAngleK + k) * kBlock + lane];
+    const double k_stretch_bend = scale.stretch_bend * c[(kStretchBendK + k) * kBlock + lane];
+    const double coeff_a = k_angle * dc + k_stretch_bend * (stretch[k] + stretch[m]);  // A
+    const double coeff_b = k_stretch_bend * dc;                                        // B
+    const double aa = coeff_a * inverse[k], ab = coeff_a * inverse[m];
+    alpha[k][k] += coeff_b - aa * cos;
+    alpha[k][m] -= aa;
+    alpha[m][k] -= ab;
+    alpha[m][m] += coeff_b - ab * cos;
+  }
+  double g[3][3];  // G_k [N]
+  for (size_t k = 0; k < 3; ++k) {
+    for (size_t e = 0; e < 3; ++e) {
+      g[k][e] = alpha[k][0] * u[0][e] + alpha[k][1] * u[1][e] + alpha[k][2] * u[2][e];
+    }
+  }
+  for (size_t k = 0; k < 3; ++k) {
+    for (size_t e = 0; e < 3; ++e) f[at[k] + e] += g[k][e] - g[(k + 2) % 3][e];
+  }
+}
+
+#ifdef SOMASIM_MOLECULAR_AVX512
+// The same for whole blocks, 8 triangles per vector (AVX-512); the forces of a block are then
+// added to the nodes in the scalar kernel's order.
+__attribute__((target("avx512f"))) void VectorTriangles(const double* x, const double* v, double* f,
+                                                        const int32_t* nodes,
+                                                        const double* constants, size_t num_blocks,
+                                                        const TermScale& scale) {
+  const __m512d zero = _mm512_setzero_pd();
+  const __m512d half = _mm512_set1_pd(0.5);
+  const __m512d three_halves = _mm512_set1_pd(1.5);
+  const __mmask8 all = 0xFF;  // masked gathers with a defined source (no GCC 12 false warning)
+  const __m512d scale_bond = _mm512_set1_pd(scale.bond);
+  const __m512d scale_angle = _mm512_set1_pd(scale.angle);
+  const __m512d scale_stretch_bend = _mm512_set1_pd(scale.stretch_bend);
+  alignas(64) double out[9][kBlock];
+  for (size_t block = 0; block < num_blocks; ++block) {
+    const int32_t* nb = nodes + 3 * kBlock * block;
+    const double* c = constants + kTriangleFields * kBlock * block;
+    __m256i index[3];
+    __m512d px[3][3], pv[3][3];
+    for (size_t k = 0; k < 3; ++k) {
+      index[k] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(nb + k * kBlock));
+      for (size_t e = 0; e < 3; ++e) {
+        px[k][e] = _mm512_mask_i32gather_pd(zero, all, index[k], x + e, 8);
+        pv[k][e] = _mm512_mask_i32gather_pd(zero, all, index[k], v + e, 8);
+      }
+    }
+    __m512d u[3][3], inverse[3], stretch[3], alpha[3][3];
+    for (size_t k = 0; k < 3; ++k) {
+      const size_t j = (k + 1) % 3;
+      const __m512d d0 = px[j][0] - px[k][0], d1 = px[j][1] - px[k][1], d2 = px[j][2] - px[k][2];
+      // 1/r by the 14-bit estimate and two Newton steps y ← y (3/2 - ½ r² y²) (14 → 28 → 56
+      // bits: within a few ulp, far cheaper than a vector square root and division); 0 at r = 0.
+      const __m512d r2 = d0 * d0 + d1 * d1 + d2 * d2;
+      const __m512d half_r2 = half * r2;
+      __m512d y = _mm512_maskz_rsqrt14_pd(_mm512_cmp_pd_mask(r2, zero, _CMP_GT_OQ), r2);
+      y = y * (three_halves - half_r2 * y * y);
+      y = y * (three_halves - half_r2 * y * y);
+      inverse[k] = y;
+      const __m512d r = r2 * y;
+      u[k][0] = d0 * inverse[k];
+      u[k][1] = d1 * inverse[k];
+      u[k][2] = d2 * inverse[k];
+      const __m512d closing = (pv[j][0] - pv[k][0]) * u[k][0] + (pv[j][1] - pv[k][1]) * u[k][1] +
+                              (pv[j][2] - pv[k][2]) * u[k][2];
+      stretch[k] = r - _mm512_loadu_pd(c + (kRestLength + k) * kBlock);
+      alpha[k][k] = scale_bond * (_mm512_loadu_pd(c + (kBondK + k) * kBlock) * stretch[k] +
+                                  _mm512_loadu_pd(c + (kBondDamping + k) * kBlock) * closing);
+      alpha[k][(k + 1) % 3] = zero;
+      alpha[k][(k + 2) % 3] = zero;
+    }
+    for (size_t k = 0; k < 3; ++k) {
+      const size_t m = (k + 2) % 3;
+      const __m512d cos = zero - (u[k][0] * u[m][0] + u[k][1] * u[m][1] + u[k][2] * u[m][2]);
+      const __m512d dc = cos - _mm512_loadu_pd(c + (kRestCos + k) * kBlock);
+      const __m512d k_angle = scale_angle * _mm512_loadu_pd(c + (kAngleK + k) * kBlock);
+      const __m512d k_stretch_bend =
+          scale_stretch_bend * _mm512_loadu_pd(c + (kStretchBendK + k) * kBlock);
+      const __m512d coeff_a = k_angle * dc + k_stretch_bend * (stretch[k] + stretch[m]);
+      const __m512d coeff_b = k_stretch_bend * dc;
+      const __m512d aa = coeff_a * inverse[k], ab = coeff_a * inverse[m];
+      alpha[k][k] += coeff_b - aa * cos;
+      alpha[k][m] -= aa;
+      alpha[m][k] -= ab;
+      alpha[m][m] += coeff_b - ab * cos;
+    }
+    __m512d g[3][3];
+    for (size_t k = 0; k < 3; ++k) {
+      for (size_t e = 0; e < 3; ++e) {
+        g[k][e] = alpha[k][0] * u[0][e] + alpha[k][1] * u[1][e] + alpha[k][2] * u[2][e];
+      }
+    }
+    for (size_t k = 0; k < 3; ++k) {
+      for (size_t e = 0; e < 3; ++e) _mm512_store_pd(out[3 * k + e], g[k][e] - g[(k + 2) % 3][e]);
+    }
+    for (size_t lane = 0; lane < kBlock; ++lane) {
+      for (size_t k = 0; k < 3; ++k) {
+        double* fk = f + nb[k * kBlock + lane];
+        for (size_t e = 0; e < 3; ++e) fk[e] += out[3 * k + e][lane];
+      }
+    }
+  }
+}
+
+bool CpuHasAvx512() {
+  static const bool has = __builtin_cpu_supports("avx512f") != 0;
+  return has;
+}
+#endif
+
 // Fills a CSR (num_nodes + 1 starts, then items) of the items touching each node; `nodes_of`
 // lists, for item k, the nodes it touches.
 template <int kNodes, typename NodesOf>
@@ -251,6 +429,45 @@ std::unique_ptr<MolecularModel> MolecularModel::FromSurface(const mesh::SurfaceM
     }
   }
 
+  // The per-step kernel's triangle blocks (see the header and ScalarTriangle): each edge gets
+  // its bond's K_b and D divided by the number of triangles sharing the bond.
+  const auto num_triangles = static_cast<size_t>(surface.triangles.cols());
+  if (n > std::numeric_limits<int32_t>::max() / 3) {
+    throw std::invalid_argument("molecular: too many nodes");
+  }
+  std::vector<int32_t> triangles_of_bond(num_bonds, 0);
+  for (size_t t = 0; t < num_triangles; ++t) {
+    for (Eigen::Index k = 0; k < 3; ++k) {
+      const auto column = static_cast<Eigen::Index>(t);
+      ++triangles_of_bond[bond_of(surface.triangles(k, column),
+                                  surface.triangles((k + 1) % 3, column))];
+    }
+  }
+  const size_t num_blocks = (num_triangles + kBlock - 1) / kBlock;
+  m.num_triangles_ = static_cast<int32_t>(num_triangles);
+  m.tri_nodes_.assign(num_blocks * 3 * kBlock, 0);
+  m.tri_constants_.assign(num_blocks * kTriangleFields * kBlock, 0.0);
+  for (size_t t = 0; t < num_triangles; ++t) {
+    const size_t lane = t % kBlock;
+    int32_t* nodes = m.tri_nodes_.data() + 3 * kBlock * (t / kBlock);
+    double* c = m.tri_constants_.data() + kTriangleFields * kBlock * (t / kBlock);
+    for (size_t k = 0; k < 3; ++k) {
+      const auto column = static_cast<Eigen::Index>(t);
+      const int32_t node = surface.triangles(static_cast<Eigen::Index>(k), column);
+      const int32_t next = surface.triangles(static_cast<Eigen::Index>((k + 1) % 3), column);
+      nodes[k * kBlock + lane] = 3 * node;
+      const size_t s = bond_of(node, next);
+      const double share = 1.0 / static_cast<double>(triangles_of_bond[s]);
+      c[(kBondK + k) * kBlock + lane] = m.bond_k_[s] * share;
+      c[(kBondDamping + k) * kBlock + lane] = m.bond_damping_[s] * share;
+      c[(kRestLength + k) * kBlock + lane] = m.bond_rest_[s];
+      const size_t angle = 3 * t + k;  // the corner angle at `node`
+      c[(kRestCos + k) * kBlock + lane] = m.angle_rest_cos_[angle];
+      c[(kAngleK + k) * kBlock + lane] = m.angle_k_[angle];
+      c[(kStretchBendK + k) * kBlock + lane] = m.stretch_bend_k_[angle];
+    }
+  }
+
   BuildIncidence<2>(
       nn, num_bonds,
       [&m](size_t s) {
@@ -280,6 +497,43 @@ void MolecularModel::InternalForces(const TissueState& state, mesh::Points* forc
 
 void MolecularModel::TermForces(const TissueState& state, uint32_t terms,
                                 mesh::Points* forces) const {
+  KernelTermForces(state, terms, true, forces);
+}
+
+bool MolecularModel::HasVectorKernel() {
+#ifdef SOMASIM_MOLECULAR_AVX512
+  return CpuHasAvx512();
+#else
+  return false;
+#endif
+}
+
+void MolecularModel::KernelTermForces(const TissueState& state, uint32_t terms,
+                                      [[maybe_unused]] bool simd, mesh::Points* forces) const {
+  forces->resize(3, rest_.cols());  // a no-op (no allocation) when already sized
+  forces->setZero();
+  const double* x = state.positions.data();
+  const double* v = state.velocities.data();
+  double* f = forces->data();
+  const TermScale scale = ScaleOf(terms);
+  const auto num_triangles = static_cast<size_t>(num_triangles_);
+  size_t done = 0;
+#ifdef SOMASIM_MOLECULAR_AVX512
+  if (simd && CpuHasAvx512()) {
+    const size_t full_blocks = num_triangles / kBlock;
+    VectorTriangles(x, v, f, tri_nodes_.data(), tri_constants_.data(), full_blocks, scale);
+    done = full_blocks * kBlock;
+  }
+#endif
+  for (size_t t = done; t < num_triangles; ++t) {
+    const size_t block = t / kBlock;
+    ScalarTriangle(x, v, f, tri_nodes_.data() + 3 * kBlock * block,
+                   tri_constants_.data() + kTriangleFields * kBlock * block, t % kBlock, scale);
+  }
+}
+
+void MolecularModel::ReferenceTermForces(const TissueState& state, uint32_t terms,
+                                         mesh::Points* forces) const {
   forces->resize(3, rest_.cols());  // a no-op (no allocation) when already sized
   forces->setZero();
   const double* x = state.positions.data();

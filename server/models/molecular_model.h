@@ -8,6 +8,13 @@
 // approximations of their directions (eq. 8, 10: along the bond, along the opposite edge) are not
 // used. Damping acts along the bonds only, as in the mass-spring model, so rigid motion is
 // undamped. Symplectic Euler as in the seed ("açık-kapalı Euler"). Pure kernel.
+//
+// Speed: the per-step forces come from one pass over the triangles, each evaluating its three
+// edges once (length, unit vector, stretch, damping) and reusing them for its three angles; a
+// bond's stretch term is shared among its triangles (K_b and D split evenly), so the sum is the
+// same energy. Per-triangle constants sit in blocks of 8 triangles (structure of arrays), and on
+// CPUs with AVX-512 a vector kernel evaluates 8 triangles at once; forces are then added to the
+// nodes in triangle order, so results are deterministic for a given machine.
 #pragma once
 
 #include <Eigen/Core>
@@ -71,6 +78,15 @@ class MolecularModel final : public TissueModel {
   void TermForces(const TissueState& state, uint32_t terms, mesh::Points* forces) const;
   double TermEnergy(const TissueState& state, uint32_t terms) const;  // [J]
   Eigen::Matrix3d TermLocalStiffness(const TissueState& state, int32_t node, uint32_t terms) const;
+  // TermForces with the triangle kernel chosen: the portable scalar code (simd = false), or the
+  // vector kernel when the CPU has one (simd = true, what TermForces does).
+  void KernelTermForces(const TissueState& state, uint32_t terms, bool simd,
+                        mesh::Points* forces) const;
+  // The definition, for tests: straightforward loops over the bonds and the angles, each
+  // evaluated on its own (slow; the same forces as TermForces up to rounding).
+  void ReferenceTermForces(const TissueState& state, uint32_t terms, mesh::Points* forces) const;
+  // Whether this CPU runs the vector kernel (AVX-512).
+  static bool HasVectorKernel();
 
   const std::vector<double>& masses() const { return mass_; }                  // [kg], num_nodes
   const std::vector<double>& bond_stiffness() const { return bond_k_; }        // [N/m], num_bonds
@@ -108,6 +124,13 @@ class MolecularModel final : public TissueModel {
   std::vector<int32_t> node_bonds_;
   std::vector<int32_t> node_angle_start_;
   std::vector<int32_t> node_angles_;
+  // The per-step kernel's triangles, in blocks of kBlock = 8 (the last padded with zeros):
+  // triangle t = (n0, n1, n2) has edges E_k = x_{n(k+1)} - x_{nk} and corner angles at n_k
+  // between E_k and -E_{k+2} (the angles 3t + k above). tri_nodes_: 3 · 8 per block, 3 · node
+  // (offsets into the coordinates). tri_constants_: kTriangleFields · 8 per block, see the .cc.
+  int32_t num_triangles_ = 0;
+  std::vector<int32_t> tri_nodes_;
+  std::vector<double> tri_constants_;
 };
 
 }  // namespace somasim::models
