@@ -4,12 +4,18 @@
 #include <array>
 #include <cassert>
 #include <cmath>
+#include <cstdint>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
 #include "common/mesh/geometry.h"
 #include "server/models/particle_mesh.h"
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#define SOMASIM_PBD_AVX512 1
+#endif
 
 namespace somasim::models {
 namespace {
@@ -26,8 +32,16 @@ class PositionBasedState final : public TissueState {
   mesh::Points predicted;            // x̃ after prediction and boundary conditions, 3 × num_nodes
   mesh::Points impulse;              // Σ ∇C λ per node [N s²] (XPBD), 3 × num_nodes
   std::vector<double> inverse_mass;  // w this step (0 for fixed, prescribed), num_nodes
-  std::vector<double> lambda;        // XPBD multipliers [N s²], num_constraints
-  double last_dt = 0.0;              // [s] of the last accepted step, 0 before any
+  std::vector<double> lambda;        // multipliers [N s²], num_constraints, in sweep order
+  // Per-constraint factors of the step, in sweep order (num_constraints), functions of Δt and w
+  // only: recomputed when either changes (see PrepareSweep).
+  std::vector<double> sweep_w1;     // w_i [1/kg]
+  std::vector<double> sweep_w2;     // w_j [1/kg]
+  std::vector<double> sweep_alpha;  // α̃ = compliance/Δt² [1/kg] (0 in seed mode)
+  std::vector<double> sweep_gain;  // 1/(w_i + w_j + α̃) (seed: k/(w_i + w_j)); 0 if w_i + w_j = 0
+  std::vector<double> prepared_w;  // the w the factors were computed with, num_nodes
+  double prepared_dt = 0.0;        // and the Δt [s] (0: not yet)
+  double last_dt = 0.0;            // [s] of the last accepted step, 0 before any
   // Attachments, merged per node: Σ_a k_a (t_a - x) = K (t̄ - x) with K = Σ k_a,
   // t̄ = Σ k_a t_a / K, projected as one compliant vector constraint (compliance 1/K).
   std::vector<double> attach_stiffness;  // K [N/m], num_nodes, 0 between steps
@@ -51,6 +65,153 @@ class PositionBasedState final : public TissueState {
   std::vector<double> good_lambda_;
   double good_last_dt_ = 0.0;
 };
+
+// The arrays one sweep reads, in sweep order. Projecting slot e: d = x_j - x_i, l = |d|,
+// t = l - a + α̃ λ, Δλ = -t · gain, λ += Δλ, x_i -= w_i Δλ d/l, x_j += w_j Δλ d/l. In XPBD mode
+// (gain = 1/(w_i + w_j + α̃)) that is Macklin et al. 2016 eq. 18; in seed mode (α̃ = 0,
+// gain = k/(w_i + w_j)) seed 004 eq. 2–3, λ then being unused.
+struct SweepArrays {
+  const int32_t* i3;
+  const int32_t* j3;
+  const double* rest;
+  const double* inverse_rest;
+  const double* w1;
+  const double* w2;
+  const double* alpha;
+  const double* gain;
+  double* lambda;
+};
+
+// Projects slots [begin, end) in order onto x (3 × n, column-major); returns the largest
+// relative residual |C + α̃ λ|/a seen before each projection (0 unless kResidual).
+template <bool kResidual>
+double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __restrict x) {
+  double residual = 0.0;
+  for (size_t e = begin; e < end; ++e) {
+    double* __restrict xi = x + s.i3[e];
+    double* __restrict xj = x + s.j3[e];
+    const double dx = xj[0] - xi[0];
+    const double dy = xj[1] - xi[1];
+    const double dz = xj[2] - xi[2];
+    const double l2 = dx * dx + dy * dy + dz * dz;
+    const double length = std::sqrt(l2);
+    const double t = (length - s.rest[e]) + s.alpha[e] * s.lambda[e];
+    if constexpr (kResidual) residual = std::max(residual, std::abs(t) * s.inverse_rest[e]);
+    if (!(l2 > 0.0)) continue;
+    const double dlambda = -t * s.gain[e];
+    s.lambda[e] += dlambda;
+    const double f = dlambda / length;
+    const double fi = s.w1[e] * f;
+    const double fj = s.w2[e] * f;
+    xi[0] -= fi * dx;
+    xi[1] -= fi * dy;
+    xi[2] -= fi * dz;
+    xj[0] += fj * dx;
+    xj[1] += fj * dy;
+    xj[2] += fj * dz;
+  }
+  return residual;
+}
+
+#ifdef SOMASIM_PBD_AVX512
+// ProjectScalar, 8 slots at a time (gathers, then scalar stores): valid only when no two slots
+// of [begin, end) share a node (one colour), so that the order within a vector does not matter. 1/l
+// comes from rsqrt14 and two Newton steps (relative error ~1e-16), so results differ from the
+// scalar sweep by rounding.
+template <bool kResidual>
+__attribute__((target("avx512f"))) double ProjectAvx512(const SweepArrays& s, size_t begin,
+                                                        size_t end, double* x) {
+  const __m512d zero = _mm512_setzero_pd();
+  const __m512d three_halves = _mm512_set1_pd(1.5);
+  const __m512d half = _mm512_set1_pd(0.5);
+  const __m512i sign_mask = _mm512_set1_epi64(INT64_MAX);
+  __m512d worst = zero;
+  for (size_t e = begin; e < end; e += 8) {
+    const size_t left = end - e;
+    const auto lanes =
+        static_cast<__mmask8>(left >= 8 ? 0xFFU : (1U << static_cast<unsigned>(left)) - 1U);
+    __m256i i3;
+    __m256i j3;
+    if (left >= 8) {
+      i3 = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(s.i3 + e));
+      j3 = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(s.j3 + e));
+    } else {  // the colour's last, partial vector: masked lanes gather from node 0, unused
+      alignas(32) int32_t tail_i[8] = {};
+      alignas(32) int32_t tail_j[8] = {};
+      std::copy(s.i3 + e, s.i3 + end, tail_i);
+      std::copy(s.j3 + e, s.j3 + end, tail_j);
+      i3 = _mm256_load_si256(reinterpret_cast<const __m256i*>(tail_i));
+      j3 = _mm256_load_si256(reinterpret_cast<const __m256i*>(tail_j));
+    }
+    const __m512d xi = _mm512_mask_i32gather_pd(zero, lanes, i3, x, 8);
+    const __m512d yi = _mm512_mask_i32gather_pd(zero, lanes, i3, x + 1, 8);
+    const __m512d zi = _mm512_mask_i32gather_pd(zero, lanes, i3, x + 2, 8);
+    const __m512d xj = _mm512_mask_i32gather_pd(zero, lanes, j3, x, 8);
+    const __m512d yj = _mm512_mask_i32gather_pd(zero, lanes, j3, x + 1, 8);
+    const __m512d zj = _mm512_mask_i32gather_pd(zero, lanes, j3, x + 2, 8);
+    const __m512d dx = _mm512_sub_pd(xj, xi);
+    const __m512d dy = _mm512_sub_pd(yj, yi);
+    const __m512d dz = _mm512_sub_pd(zj, zi);
+    const __m512d l2 = _mm512_fmadd_pd(dz, dz, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dx, dx)));
+    const __mmask8 ok = _mm512_mask_cmp_pd_mask(lanes, l2, zero, _CMP_GT_OQ);
+    // 1/l: y ← y (3/2 - l²/2 y²), twice.
+    const __m512d h = _mm512_mul_pd(half, l2);
+    __m512d y = _mm512_maskz_rsqrt14_pd(ok, l2);
+    y = _mm512_mul_pd(y, _mm512_fnmadd_pd(h, _mm512_mul_pd(y, y), three_halves));
+    y = _mm512_mul_pd(y, _mm512_fnmadd_pd(h, _mm512_mul_pd(y, y), three_halves));
+    const __m512d length = _mm512_mul_pd(l2, y);  // 0 where l = 0
+    const __m512d lambda = _mm512_maskz_loadu_pd(lanes, s.lambda + e);
+    const __m512d t =
+        _mm512_fmadd_pd(_mm512_maskz_loadu_pd(lanes, s.alpha + e), lambda,
+                        _mm512_sub_pd(length, _mm512_maskz_loadu_pd(lanes, s.rest + e)));
+    if constexpr (kResidual) {
+      const __m512d relative =
+          _mm512_mul_pd(_mm512_castsi512_pd(_mm512_and_si512(_mm512_castpd_si512(t), sign_mask)),
+                        _mm512_maskz_loadu_pd(lanes, s.inverse_rest + e));
+      worst = _mm512_mask_max_pd(worst, lanes, relative, worst);
+    }
+    const __m512d dlambda =
+        _mm512_maskz_mul_pd(ok, _mm512_sub_pd(zero, t), _mm512_maskz_loadu_pd(lanes, s.gain + e));
+    _mm512_mask_storeu_pd(s.lambda + e, ok, _mm512_add_pd(lambda, dlambda));
+    const __m512d f = _mm512_mul_pd(dlambda, y);
+    const __m512d fi = _mm512_mul_pd(_mm512_maskz_loadu_pd(lanes, s.w1 + e), f);
+    const __m512d fj = _mm512_mul_pd(_mm512_maskz_loadu_pd(lanes, s.w2 + e), f);
+    // Scalar stores from a buffer beat six scatters (no two lanes share a node; a lane whose
+    // length is 0 writes back the values it read).
+    alignas(64) double updated[6][8];
+    _mm512_store_pd(updated[0], _mm512_fnmadd_pd(fi, dx, xi));
+    _mm512_store_pd(updated[1], _mm512_fnmadd_pd(fi, dy, yi));
+    _mm512_store_pd(updated[2], _mm512_fnmadd_pd(fi, dz, zi));
+    _mm512_store_pd(updated[3], _mm512_fmadd_pd(fj, dx, xj));
+    _mm512_store_pd(updated[4], _mm512_fmadd_pd(fj, dy, yj));
+    _mm512_store_pd(updated[5], _mm512_fmadd_pd(fj, dz, zj));
+    const size_t count = std::min<size_t>(left, 8);
+    for (size_t k = 0; k < count; ++k) {
+      double* xi_k = x + s.i3[e + k];
+      double* xj_k = x + s.j3[e + k];
+      xi_k[0] = updated[0][k];
+      xi_k[1] = updated[1][k];
+      xi_k[2] = updated[2][k];
+      xj_k[0] = updated[3][k];
+      xj_k[1] = updated[4][k];
+      xj_k[2] = updated[5][k];
+    }
+  }
+  alignas(64) double lane_worst[8];
+  _mm512_store_pd(lane_worst, worst);
+  return *std::max_element(lane_worst, lane_worst + 8);
+}
+
+bool CpuHasAvx512() {
+  static const bool has = [] {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx512f") != 0;
+  }();
+  return has;
+}
+#else
+bool CpuHasAvx512() { return false; }
+#endif
 
 [[noreturn]] void Refuse(const std::string& what) {
   throw std::invalid_argument("position-based: " + what);
@@ -192,7 +353,66 @@ void PositionBasedModel::Build(const mesh::Points& rest,
     node_edges_[static_cast<size_t>(fill[static_cast<size_t>(edge_j_[e])]++)] =
         static_cast<int32_t>(e);
   }
+  ColourConstraints();
+  simd_ = p.vectorised && CpuHasAvx512();
   set_speed_limit(p.speed_limit);
+}
+
+void PositionBasedModel::ColourConstraints() {
+  // Greedy colouring in sorted order: each constraint takes the lowest colour that neither of
+  // its nodes has yet. At most 2 · (max degree) - 1 colours.
+  const size_t n = mass_.size();
+  const size_t m = edge_i_.size();
+  int32_t max_degree = 0;
+  for (size_t i = 0; i < n; ++i) {
+    max_degree = std::max(max_degree, node_edge_start_[i + 1] - node_edge_start_[i]);
+  }
+  const size_t words = (2 * static_cast<size_t>(max_degree) + 63) / 64;
+  std::vector<uint64_t> used(n * words, 0);  // bit c of node i: colour c touches i
+  std::vector<int32_t> colour(m);
+  int32_t num_colours = 0;
+  for (size_t e = 0; e < m; ++e) {
+    const uint64_t* ui = &used[static_cast<size_t>(edge_i_[e]) * words];
+    const uint64_t* uj = &used[static_cast<size_t>(edge_j_[e]) * words];
+    size_t c = 0;
+    for (size_t w = 0; w < words; ++w) {
+      const uint64_t taken = ui[w] | uj[w];
+      if (taken != ~uint64_t{0}) {
+        c = 64 * w + static_cast<size_t>(__builtin_ctzll(~taken));
+        break;
+      }
+    }
+    colour[e] = static_cast<int32_t>(c);
+    num_colours = std::max(num_colours, static_cast<int32_t>(c) + 1);
+    used[static_cast<size_t>(edge_i_[e]) * words + c / 64] |= uint64_t{1} << (c % 64);
+    used[static_cast<size_t>(edge_j_[e]) * words + c / 64] |= uint64_t{1} << (c % 64);
+  }
+  // Slots by colour, sorted order within a colour (a counting sort).
+  colour_start_.assign(static_cast<size_t>(num_colours) + 1, 0);
+  for (size_t e = 0; e < m; ++e) ++colour_start_[static_cast<size_t>(colour[e]) + 1];
+  for (size_t c = 0; c < static_cast<size_t>(num_colours); ++c) {
+    colour_start_[c + 1] += colour_start_[c];
+  }
+  std::vector<int32_t> fill(colour_start_.begin(), colour_start_.end() - 1);
+  sweep_edge_.resize(m);
+  for (size_t e = 0; e < m; ++e) {
+    sweep_edge_[static_cast<size_t>(fill[static_cast<size_t>(colour[e])]++)] =
+        static_cast<int32_t>(e);
+  }
+  const bool xpbd = parameters_.mode == PositionBasedMode::kXpbd;
+  sweep_i3_.resize(m);
+  sweep_j3_.resize(m);
+  sweep_rest_.resize(m);
+  sweep_inv_rest_.resize(m);
+  sweep_compliance_.resize(m);
+  for (size_t s = 0; s < m; ++s) {
+    const auto e = static_cast<size_t>(sweep_edge_[s]);
+    sweep_i3_[s] = 3 * edge_i_[e];
+    sweep_j3_[s] = 3 * edge_j_[e];
+    sweep_rest_[s] = rest_length_[e];
+    sweep_inv_rest_[s] = 1.0 / rest_length_[e];
+    sweep_compliance_[s] = xpbd ? edge_compliance_[e] : 0.0;
+  }
 }
 
 std::unique_ptr<TissueState> PositionBasedModel::MakeState() const {
@@ -206,6 +426,12 @@ std::unique_ptr<TissueState> PositionBasedModel::MakeState() const {
   state->inverse_mass = inverse_mass_;
   state->lambda.assign(m, 0.0);
   state->good_lambda_.assign(m, 0.0);
+  state->sweep_w1.assign(m, 0.0);
+  state->sweep_w2.assign(m, 0.0);
+  state->sweep_alpha.assign(m, 0.0);
+  state->sweep_gain.assign(m, 0.0);
+  state->prepared_w.assign(static_cast<size_t>(n), 0.0);
+  state->prepared_dt = 0.0;
   state->attach_stiffness.assign(static_cast<size_t>(n), 0.0);
   state->attach_weighted_target = mesh::Points::Zero(3, n);
   state->attach_lambda = mesh::Points::Zero(3, n);
@@ -229,20 +455,28 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   auto* state = static_cast<PositionBasedState*>(base);
   const double dt = inputs.dt;
   const double dt2 = dt * dt;
-  const Eigen::Index n = rest_.cols();
+  const auto n = static_cast<size_t>(rest_.cols());
   mesh::Points& x = state->positions;
   std::vector<double>& w = state->inverse_mass;
   state->start = x;
   std::copy(inverse_mass_.begin(), inverse_mass_.end(), w.begin());
 
   // Prediction, seed 004 eq. 1: x' = 2x - x* + a Δt² = x + Δt v + Δt² (g + f_ext/m), with
-  // v = (x - x*)/Δt kept as the state's velocity. Massless nodes do not move.
-  for (Eigen::Index i = 0; i < n; ++i) {
-    const double wi = w[static_cast<size_t>(i)];
+  // v = (x - x*)/Δt kept as the state's velocity. Massless nodes do not move. (A further
+  // per-step force, e.g. a volume term, would be added to f_ext here.)
+  double* __restrict px = x.data();
+  const double* __restrict pv = state->velocities.data();
+  const double* __restrict pf =
+      inputs.external_forces != nullptr ? inputs.external_forces->data() : nullptr;
+  const Vector3d& g = inputs.gravity;
+  for (size_t i = 0; i < n; ++i) {
+    const double wi = w[i];
     if (!(wi > 0.0)) continue;
-    Vector3d a = inputs.gravity;
-    if (inputs.external_forces != nullptr) a += wi * inputs.external_forces->col(i);
-    x.col(i) += dt * state->velocities.col(i) + dt2 * a;
+    for (size_t k = 0; k < 3; ++k) {
+      const double a = pf != nullptr ? g[static_cast<Eigen::Index>(k)] + wi * pf[3 * i + k]
+                                     : g[static_cast<Eigen::Index>(k)];
+      px[3 * i + k] += dt * pv[3 * i + k] + dt2 * a;
+    }
   }
   // Fixed nodes stay where they were; prescribed nodes go to their targets. Both get inverse
   // mass 0, so the projections never move them.
@@ -255,7 +489,9 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
     x.col(node) = inputs.prescribed_positions->col(static_cast<Eigen::Index>(k));
     w[static_cast<size_t>(node)] = 0.0;
   }
-  state->predicted = x;
+  const bool xpbd = parameters_.mode == PositionBasedMode::kXpbd;
+  const bool primal_correction = xpbd && parameters_.primal_correction;
+  if (primal_correction) state->predicted = x;
   // Attachments, merged per node into one compliant constraint x - t̄ = 0 with compliance 1/K.
   state->num_attached = 0;
   for (const Attachment& a : inputs.attachments) {
@@ -270,66 +506,61 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
     state->attach_weighted_target.col(a.node) += a.stiffness * a.target;
   }
 
-  const bool xpbd = parameters_.mode == PositionBasedMode::kXpbd;
-  const double k_seed = parameters_.stiffness;
-  const size_t m = edge_i_.size();
-  std::fill(state->lambda.begin(), state->lambda.end(), 0.0);
-  double* __restrict px = x.data();
-  const double* __restrict pw = w.data();
-  double* __restrict lambda = state->lambda.data();
+  // The per-constraint factors: they change only with Δt and the inverse masses (fixed and
+  // prescribed nodes), so most steps reuse the last ones.
+  const size_t m = sweep_edge_.size();
   const double inverse_dt2 = 1.0 / dt2;
+  if (!(dt == state->prepared_dt) || !std::equal(w.begin(), w.end(), state->prepared_w.begin())) {
+    const double k_seed = parameters_.stiffness;
+    for (size_t s = 0; s < m; ++s) {
+      const double w1 = w[static_cast<size_t>(sweep_i3_[s] / 3)];
+      const double w2 = w[static_cast<size_t>(sweep_j3_[s] / 3)];
+      const double alpha = sweep_compliance_[s] * inverse_dt2;  // α̃, 0 in seed mode
+      const double w_sum = w1 + w2;
+      state->sweep_w1[s] = w1;
+      state->sweep_w2[s] = w2;
+      state->sweep_alpha[s] = alpha;
+      // A constraint between two immovable nodes is left alone (its λ stays 0).
+      state->sweep_gain[s] = !(w_sum > 0.0) ? 0.0 : xpbd ? 1.0 / (w_sum + alpha) : k_seed / w_sum;
+    }
+    std::copy(w.begin(), w.end(), state->prepared_w.begin());
+    state->prepared_dt = dt;
+  }
 
+  std::fill(state->lambda.begin(), state->lambda.end(), 0.0);
+  const SweepArrays arrays{
+      sweep_i3_.data(),          sweep_j3_.data(),         sweep_rest_.data(),
+      sweep_inv_rest_.data(),    state->sweep_w1.data(),   state->sweep_w2.data(),
+      state->sweep_alpha.data(), state->sweep_gain.data(), state->lambda.data()};
+  const size_t num_colours = colour_start_.size() - 1;
   int iteration = 0;
-  double residual = 0.0;
+  double residual = 0.0;  // computed only when a tolerance asks for it
   const double tolerance = parameters_.tolerance;
   while (iteration < parameters_.iterations) {
     ++iteration;
     residual = 0.0;
-    // Distance constraints in a fixed order (sorted edges): Gauss–Seidel.
-    for (size_t e = 0; e < m; ++e) {
-      const auto i = 3 * static_cast<size_t>(edge_i_[e]);
-      const auto j = 3 * static_cast<size_t>(edge_j_[e]);
-      const double w1 = pw[i / 3];
-      const double w2 = pw[j / 3];
-      const double w_sum = w1 + w2;
-      const double dx = px[j] - px[i];
-      const double dy = px[j + 1] - px[i + 1];
-      const double dz = px[j + 2] - px[i + 2];
-      const double length = std::sqrt(dx * dx + dy * dy + dz * dz);
-      const double a = rest_length_[e];
-      const double c = length - a;  // C = |d| - a
-      if (xpbd) {
-        // XPBD (Macklin et al. 2016 eq. 18): Δλ = (-C - α̃ λ)/(w1 + w2 + α̃), α̃ = compliance/Δt²;
-        // Δx1 = -w1 Δλ u, Δx2 = w2 Δλ u with u = d/|d| = ∇_{x2} C.
-        const double alpha = edge_compliance_[e] * inverse_dt2;
-        residual = std::max(residual, std::abs(c + alpha * lambda[e]) / a);
-        if (!(w_sum > 0.0) || !(length > 0.0)) continue;
-        const double dlambda = (-c - alpha * lambda[e]) / (w_sum + alpha);
-        lambda[e] += dlambda;
-        const double s = dlambda / length;
-        px[i] -= w1 * s * dx;
-        px[i + 1] -= w1 * s * dy;
-        px[i + 2] -= w1 * s * dz;
-        px[j] += w2 * s * dx;
-        px[j + 1] += w2 * s * dy;
-        px[j + 2] += w2 * s * dz;
-      } else {
-        // Seed 004 eq. 2–3: x1 += k w1/(w1+w2) (|d|-a)/|d| d, x2 -= k w2/(w1+w2) (|d|-a)/|d| d.
-        residual = std::max(residual, std::abs(c) / a);
-        if (!(w_sum > 0.0) || !(length > 0.0)) continue;
-        const double s = k_seed * c / (length * w_sum);
-        px[i] += w1 * s * dx;
-        px[i + 1] += w1 * s * dy;
-        px[i + 2] += w1 * s * dz;
-        px[j] -= w2 * s * dx;
-        px[j + 1] -= w2 * s * dy;
-        px[j + 2] -= w2 * s * dz;
+    // Distance constraints colour by colour (Gauss–Seidel; within a colour no two constraints
+    // share a node, so their order there does not matter).
+    for (size_t c = 0; c < num_colours; ++c) {
+      const auto begin = static_cast<size_t>(colour_start_[c]);
+      const auto end = static_cast<size_t>(colour_start_[c + 1]);
+      double worst = 0.0;
+#ifdef SOMASIM_PBD_AVX512
+      if (simd_) {
+        worst = tolerance > 0.0 ? ProjectAvx512<true>(arrays, begin, end, px)
+                                : ProjectAvx512<false>(arrays, begin, end, px);
+        residual = std::max(residual, worst);
+        continue;
       }
+#endif
+      worst = tolerance > 0.0 ? ProjectScalar<true>(arrays, begin, end, px)
+                              : ProjectScalar<false>(arrays, begin, end, px);
+      residual = std::max(residual, worst);
     }
     // Attachments: the vector constraint C = x - t̄ with compliance 1/K, ∇C = I (XPBD).
     for (size_t k = 0; k < state->num_attached; ++k) {
       const int32_t node = state->attached_nodes[k];
-      const double wi = pw[static_cast<size_t>(node)];
+      const double wi = w[static_cast<size_t>(node)];
       if (!(wi > 0.0)) continue;
       const double stiffness = state->attach_stiffness[static_cast<size_t>(node)];
       const double alpha = inverse_dt2 / stiffness;
@@ -338,27 +569,42 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
       state->attach_lambda.col(node) += dlambda;
       x.col(node) += wi * dlambda;
     }
-    if (xpbd && parameters_.primal_correction) {
+    // Further constraints of the whole body (e.g. a volume term) are projected here, once per
+    // sweep, after the distance constraints and attachments.
+    if (primal_correction) {
       // Primal correction: Gauss–Seidel moved each node along gradients taken at intermediate
       // positions, so x - x̃ drifts from M⁻¹ Σ ∇C(x) λ by O(|Δx|/l) (the g ≈ 0 assumption of
       // Macklin et al. §4). Re-anchoring x = x̃ + M⁻¹ (Σ_e ∇C_e(x) λ_e + λ_attach) makes a
       // converged step an exact backward-Euler step, whose rest state is the static solution
       // of springs 1/compliance, whatever Δt or the sweep count.
       state->impulse.setZero();
-      for (size_t e = 0; e < m; ++e) {
-        const Vector3d d = x.col(edge_j_[e]) - x.col(edge_i_[e]);
-        const double length = d.norm();
+      double* __restrict impulse = state->impulse.data();
+      const double* __restrict lambda = state->lambda.data();
+      for (size_t s = 0; s < m; ++s) {
+        const auto i = static_cast<size_t>(sweep_i3_[s]);
+        const auto j = static_cast<size_t>(sweep_j3_[s]);
+        const double dx = px[j] - px[i];
+        const double dy = px[j + 1] - px[i + 1];
+        const double dz = px[j + 2] - px[i + 2];
+        const double length = std::sqrt(dx * dx + dy * dy + dz * dz);
         if (!(length > 0.0)) continue;
-        const Vector3d push = (lambda[e] / length) * d;  // ∇_{x_j} C λ
-        state->impulse.col(edge_j_[e]) += push;
-        state->impulse.col(edge_i_[e]) -= push;
+        const double f = lambda[s] / length;  // ∇_{x_j} C λ = f d
+        impulse[j] += f * dx;
+        impulse[j + 1] += f * dy;
+        impulse[j + 2] += f * dz;
+        impulse[i] -= f * dx;
+        impulse[i + 1] -= f * dy;
+        impulse[i + 2] -= f * dz;
       }
       for (size_t k = 0; k < state->num_attached; ++k) {
         const int32_t node = state->attached_nodes[k];
         state->impulse.col(node) += state->attach_lambda.col(node);
       }
-      for (Eigen::Index i = 0; i < n; ++i) {
-        x.col(i) = state->predicted.col(i) + pw[static_cast<size_t>(i)] * state->impulse.col(i);
+      const double* __restrict predicted = state->predicted.data();
+      for (size_t i = 0; i < n; ++i) {
+        for (size_t k = 0; k < 3; ++k) {
+          px[3 * i + k] = predicted[3 * i + k] + w[i] * impulse[3 * i + k];
+        }
       }
     }
     if (tolerance > 0.0 && residual < tolerance) break;
@@ -378,12 +624,18 @@ double PositionBasedModel::LastConstraintResidual(const TissueState& base) const
   const auto& state = static_cast<const PositionBasedState&>(base);
   const bool xpbd = parameters_.mode == PositionBasedMode::kXpbd;
   const double inverse_dt2 = state.last_dt > 0.0 ? 1.0 / (state.last_dt * state.last_dt) : 0.0;
+  const double* x = state.positions.data();
   double worst = 0.0;
-  for (size_t e = 0; e < edge_i_.size(); ++e) {
-    const double c = (state.positions.col(edge_j_[e]) - state.positions.col(edge_i_[e])).norm() -
-                     rest_length_[e];
-    const double h = xpbd ? c + edge_compliance_[e] * inverse_dt2 * state.lambda[e] : c;
-    worst = std::max(worst, std::abs(h) / rest_length_[e]);
+  for (size_t s = 0; s < sweep_edge_.size(); ++s) {
+    const auto i = static_cast<size_t>(sweep_i3_[s]);
+    const auto j = static_cast<size_t>(sweep_j3_[s]);
+    const double dx = x[j] - x[i];
+    const double dy = x[j + 1] - x[i + 1];
+    const double dz = x[j + 2] - x[i + 2];
+    const double c = std::sqrt(dx * dx + dy * dy + dz * dz) - sweep_rest_[s];
+    // λ is in sweep order, like the sweep arrays.
+    const double h = xpbd ? c + sweep_compliance_[s] * inverse_dt2 * state.lambda[s] : c;
+    worst = std::max(worst, std::abs(h) * sweep_inv_rest_[s]);
   }
   return worst;
 }

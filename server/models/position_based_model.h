@@ -50,6 +50,9 @@ struct PositionBasedParameters {
   // 0 runs every iteration. Steps that end above it count as solver_unconverged.
   double tolerance = 0.0;
   double speed_limit = 100.0;  // [m/s], > 0: a faster node marks a diverged step
+  // Project each colour 8 constraints at a time with AVX-512 when the CPU has it (the same
+  // sweep order; results differ from the scalar sweep by rounding only). False: always scalar.
+  bool vectorised = true;
 };
 
 class PositionBasedModel final : public TissueModel {
@@ -89,6 +92,17 @@ class PositionBasedModel final : public TissueModel {
   const std::vector<double>& constraint_stiffness() const { return edge_stiffness_; }
   const std::vector<double>& rest_lengths() const { return rest_length_; }  // [m]
   const mesh::Points& rest_positions() const { return rest_; }
+  // The sweep order: the constraints of colour c are sweep slots
+  // colour_starts()[c] .. colour_starts()[c + 1] - 1 (num_colours + 1 entries), and slot s
+  // projects constraint sweep_constraints()[s] (an index into rest_lengths() etc.). No two
+  // constraints of a colour share a node.
+  const std::vector<int32_t>& colour_starts() const { return colour_start_; }
+  const std::vector<int32_t>& sweep_constraints() const { return sweep_edge_; }
+  std::array<int32_t, 2> constraint_nodes(int32_t e) const {
+    return {edge_i_[static_cast<size_t>(e)], edge_j_[static_cast<size_t>(e)]};
+  }
+  // Whether the sweeps run the AVX-512 kernel (parameters().vectorised and the CPU has it).
+  bool uses_simd() const { return simd_; }
   const PositionBasedParameters& parameters() const { return parameters_; }
 
  protected:
@@ -101,6 +115,8 @@ class PositionBasedModel final : public TissueModel {
              const PositionBasedParameters& parameters);
   // k_eff of constraint e [N/m] for a step of dt (see LocalStiffness).
   double EffectiveStiffness(size_t e, double dt) const;
+  // Greedy colouring of the constraints into sweep order (colour_start_, sweep_*).
+  void ColourConstraints();
 
   PositionBasedParameters parameters_;
   mesh::Points rest_;         // [m], 3 × num_nodes
@@ -113,6 +129,15 @@ class PositionBasedModel final : public TissueModel {
   std::vector<double> edge_compliance_;   // [m/N], num_constraints (XPBD)
   std::vector<int32_t> node_edge_start_;  // num_nodes + 1, CSR of constraints per node
   std::vector<int32_t> node_edges_;
+  // The sweep: constraints in colour order, num_constraints each (see colour_starts()).
+  std::vector<int32_t> colour_start_;     // num_colours + 1
+  std::vector<int32_t> sweep_edge_;       // constraint index of each slot
+  std::vector<int32_t> sweep_i3_;         // 3 i: offset of x_i in the 3 × n positions
+  std::vector<int32_t> sweep_j3_;         // 3 j
+  std::vector<double> sweep_rest_;        // a [m]
+  std::vector<double> sweep_inv_rest_;    // 1/a [1/m]
+  std::vector<double> sweep_compliance_;  // [m/N] (XPBD), 0 in seed mode
+  bool simd_ = false;
 };
 
 }  // namespace somasim::models
