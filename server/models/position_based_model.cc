@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "common/mesh/geometry.h"
+#include "common/mesh/topology.h"
 #include "server/models/particle_mesh.h"
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -63,6 +64,7 @@ class PositionBasedState final : public TissueState {
  private:
   friend class somasim::models::PositionBasedModel;
   std::vector<double> good_lambda_;
+  mesh::Points volume_forces;  // [N], 3 × num_nodes when the volume reaction is on
   double good_last_dt_ = 0.0;
 };
 
@@ -217,6 +219,10 @@ bool CpuHasAvx512() { return false; }
   throw std::invalid_argument("position-based: " + what);
 }
 
+bool VolumeOn(const SolidAngleVolumeParameters& v) {
+  return v.gamma_plus != 0.0 || v.sigma_plus != 0.0 || v.gamma_minus != 0.0 || v.sigma_minus != 0.0;
+}
+
 void CheckParameters(const PositionBasedParameters& p) {
   if (p.mode != PositionBasedMode::kSeedStiffness && p.mode != PositionBasedMode::kXpbd) {
     Refuse("mode must be kSeedStiffness or kXpbd");
@@ -253,6 +259,10 @@ std::unique_ptr<PositionBasedModel> PositionBasedModel::FromTetMesh(
   const MeshEdges edges = TetMeshEdges(mesh, "position-based");
   std::unique_ptr<PositionBasedModel> model(new PositionBasedModel());
   model->Build(mesh.vertices, edges.edges, edges.edge_size, edges.node_size, parameters);
+  if (VolumeOn(parameters.volume)) {
+    model->volume_ = std::make_unique<SolidAngleVolumeTerm>(SolidAngleVolumeTerm::Build(
+        mesh.vertices, mesh::ExtractBoundarySurface(mesh).triangles, parameters.volume));
+  }
   return model;
 }
 
@@ -262,6 +272,10 @@ std::unique_ptr<PositionBasedModel> PositionBasedModel::FromSurface(
   const MeshEdges edges = SurfaceEdges(surface, parameters.thickness, "position-based");
   std::unique_ptr<PositionBasedModel> model(new PositionBasedModel());
   model->Build(surface.vertices, edges.edges, edges.edge_size, edges.node_size, parameters);
+  if (VolumeOn(parameters.volume)) {
+    model->volume_ = std::make_unique<SolidAngleVolumeTerm>(
+        SolidAngleVolumeTerm::Build(surface, parameters.volume));
+  }
   return model;
 }
 
@@ -275,6 +289,9 @@ std::unique_ptr<PositionBasedModel> PositionBasedModel::FromEdges(
     Refuse("XPBD constraints given as edges need compliance > 0");
   }
   if (edges.empty()) Refuse("no constraints");
+  if (VolumeOn(parameters.volume)) {
+    Refuse("the volume reaction needs a closed surface; constraints given as edges have none");
+  }
   std::vector<std::array<int32_t, 2>> ordered;
   ordered.reserve(edges.size());
   for (size_t e = 0; e < edges.size(); ++e) {
@@ -436,6 +453,7 @@ std::unique_ptr<TissueState> PositionBasedModel::MakeState() const {
   state->attach_weighted_target = mesh::Points::Zero(3, n);
   state->attach_lambda = mesh::Points::Zero(3, n);
   state->attached_nodes.assign(static_cast<size_t>(n), 0);
+  if (volume_ != nullptr) state->volume_forces = mesh::Points::Zero(3, n);
   return state;
 }
 
@@ -462,12 +480,18 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   std::copy(inverse_mass_.begin(), inverse_mass_.end(), w.begin());
 
   // Prediction, seed 004 eq. 1: x' = 2x - x* + a Δt² = x + Δt v + Δt² (g + f_ext/m), with
-  // v = (x - x*)/Δt kept as the state's velocity. Massless nodes do not move. (A further
-  // per-step force, e.g. a volume term, would be added to f_ext here.)
-  double* __restrict px = x.data();
-  const double* __restrict pv = state->velocities.data();
+  // v = (x - x*)/Δt kept as the state's velocity. Massless nodes do not move. The volume
+  // reaction (seed 004) joins f_ext, evaluated at the start of the step.
   const double* __restrict pf =
       inputs.external_forces != nullptr ? inputs.external_forces->data() : nullptr;
+  if (volume_ != nullptr) {
+    state->volume_forces.setZero();
+    volume_->AddForces(x, &state->volume_forces);
+    if (pf != nullptr) state->volume_forces += *inputs.external_forces;
+    pf = state->volume_forces.data();
+  }
+  double* __restrict px = x.data();
+  const double* __restrict pv = state->velocities.data();
   const Vector3d& g = inputs.gravity;
   for (size_t i = 0; i < n; ++i) {
     const double wi = w[i];
@@ -656,6 +680,7 @@ Eigen::Matrix3d PositionBasedModel::LocalStiffness(const TissueState& base, int3
     k_local += EffectiveStiffness(e, state.last_dt) *
                (uu + (1.0 - rest_length_[e] / length) * (Eigen::Matrix3d::Identity() - uu));
   }
+  if (volume_ != nullptr) k_local += volume_->LocalStiffness(state.positions, node);
   return k_local;
 }
 
@@ -673,6 +698,7 @@ void PositionBasedModel::InternalForces(const TissueState& base, mesh::Points* f
     forces->col(edge_i_[e]) += f;
     forces->col(edge_j_[e]) -= f;
   }
+  if (volume_ != nullptr) volume_->AddForces(state.positions, forces);
 }
 
 EnergyReport PositionBasedModel::Energy(const TissueState& base,
@@ -684,6 +710,7 @@ EnergyReport PositionBasedModel::Energy(const TissueState& base,
                      rest_length_[e];
     report.elastic += 0.5 * EffectiveStiffness(e, state.last_dt) * c * c;
   }
+  if (volume_ != nullptr) report.elastic += volume_->Energy(state.positions);
   for (Eigen::Index i = 0; i < rest_.cols(); ++i) {
     const double m = mass_[static_cast<size_t>(i)];
     report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();

@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
+#include "server/models/solid_angle_volume.h"
 #include "server/models/tissue_model.h"
 
 namespace somasim::models {
@@ -53,6 +54,11 @@ struct PositionBasedParameters {
   // Project each colour 8 constraints at a time with AVX-512 when the CPU has it (the same
   // sweep order; results differ from the scalar sweep by rounding only). False: always scalar.
   bool vectorised = true;
+  // Seed 004's volume reaction (solid_angle_volume.h): a restoring force at every surface node
+  // against the change of its solid angle, added to the prediction's forces each step. All zero
+  // (the default) is off. Needs a closed surface (FromSurface) or a tetrahedral mesh (its
+  // boundary); refused for FromEdges.
+  SolidAngleVolumeParameters volume;
 };
 
 class PositionBasedModel final : public TissueModel {
@@ -78,9 +84,10 @@ class PositionBasedModel final : public TissueModel {
   // the stiffness one step of projections emulates: (1 - (1-k)^iterations) m_e / Δt², with the
   // pair's reduced mass m_e and the last step's Δt (1 ms before the first step).
   Eigen::Matrix3d LocalStiffness(const TissueState& state, int32_t node) const override;
-  // -∇ of the elastic energy: Σ k_eff C along each constraint [N], 3 × num_nodes.
+  // -∇ of the elastic energy: Σ k_eff C along each constraint [N], plus the volume reaction,
+  // 3 × num_nodes.
   void InternalForces(const TissueState& state, mesh::Points* forces) const override;
-  // elastic = Σ ½ k_eff C², C = |x_j - x_i| - a.
+  // elastic = Σ ½ k_eff C², C = |x_j - x_i| - a, plus the volume term's energy.
   EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
 
   // The largest relative violation after the last step: max_e |C_e + α̃ λ_e| / a_e in XPBD mode
@@ -103,6 +110,8 @@ class PositionBasedModel final : public TissueModel {
   }
   // Whether the sweeps run the AVX-512 kernel (parameters().vectorised and the CPU has it).
   bool uses_simd() const { return simd_; }
+  // The volume reaction, or null when parameters().volume is all zero.
+  const SolidAngleVolumeTerm* volume_term() const { return volume_.get(); }
   const PositionBasedParameters& parameters() const { return parameters_; }
 
  protected:
@@ -138,6 +147,7 @@ class PositionBasedModel final : public TissueModel {
   std::vector<double> sweep_inv_rest_;    // 1/a [1/m]
   std::vector<double> sweep_compliance_;  // [m/N] (XPBD), 0 in seed mode
   bool simd_ = false;
+  std::unique_ptr<SolidAngleVolumeTerm> volume_;  // null when off
 };
 
 }  // namespace somasim::models

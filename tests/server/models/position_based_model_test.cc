@@ -17,6 +17,8 @@
 #include <vector>
 
 #include "common/mesh_gen/builtin_organs.h"
+#include "common/mesh_gen/closed_surface_mesher.h"
+#include "common/mesh_gen/implicit.h"
 #include "server/models/mass_spring_model.h"
 #include "tests/support/allocation_counter.h"
 
@@ -519,6 +521,142 @@ TEST(PositionBasedModel, BadParametersAreRefusedNamingThem) {
   two(0, 1) = 1.0;
   EXPECT_THROW(PositionBasedModel::FromEdges(two, {{0, 2}}, raw), std::invalid_argument);
   EXPECT_NO_THROW(PositionBasedModel::FromEdges(two, {{0, 1}}, raw));
+}
+
+// A closed sphere of radius 2 cm (80 vertices), for the volume reaction.
+mesh::SurfaceMesh SmallSphere() {
+  const mesh_gen::Ellipsoid sphere(Vector3d::Zero(), Vector3d::Constant(0.02));
+  mesh_gen::ClosedSurfaceOptions options;
+  options.num_vertices = 80;
+  return mesh_gen::MeshClosedSurface(sphere, options);
+}
+
+// x with node `node` scaled by `factor` towards the origin.
+mesh::Points Scaled(const mesh::Points& x, int32_t node, double factor) {
+  mesh::Points result = x;
+  result.col(node) = factor * x.col(node);
+  return result;
+}
+
+mesh::Points VolumeForces(const SolidAngleVolumeTerm& term, const mesh::Points& x) {
+  mesh::Points forces = PointLoad(static_cast<int32_t>(x.cols()), 0, Vector3d::Zero());
+  term.AddForces(x, &forces);
+  return forces;
+}
+
+SolidAngleVolumeParameters VolumeReaction(double sigma, double gamma) {
+  SolidAngleVolumeParameters v;
+  v.sigma_plus = v.sigma_minus = sigma;
+  v.gamma_plus = v.gamma_minus = gamma;
+  return v;
+}
+
+TEST(PositionBasedModel, VolumeReactionForcesAndStiffnessAreEnergyDerivatives) {
+  const mesh::SurfaceMesh sphere = SmallSphere();
+  PositionBasedParameters p = Xpbd(10);
+  p.volume = VolumeReaction(2e-3, 5e-3);
+  const auto model = PositionBasedModel::FromSurface(sphere, p);
+  ASSERT_NE(model->volume_term(), nullptr);
+  const auto state = model->MakeState();
+  Perturb(state.get(), 0.002, 5);
+  const Vector3d g = Vector3d::Zero();
+  const int32_t n = model->num_nodes();
+  mesh::Points forces(3, n), plus(3, n), minus(3, n);
+  model->InternalForces(*state, &forces);
+  for (const int32_t node : {0, 17, 41, 79}) {
+    const Eigen::Matrix3d k = model->LocalStiffness(*state, node);
+    Eigen::Matrix3d fd;
+    for (int axis = 0; axis < 3; ++axis) {
+      const double h = 1e-7;
+      const double x0 = state->positions(axis, node);
+      state->positions(axis, node) = x0 + h;
+      const double e_plus = model->Energy(*state, g).elastic;
+      model->InternalForces(*state, &plus);
+      state->positions(axis, node) = x0 - h;
+      const double e_minus = model->Energy(*state, g).elastic;
+      model->InternalForces(*state, &minus);
+      state->positions(axis, node) = x0;
+      fd.col(axis) = -(plus.col(node) - minus.col(node)) / (2 * h);
+      EXPECT_NEAR(forces(axis, node), -(e_plus - e_minus) / (2 * h),
+                  1e-6 * forces.col(node).norm());
+    }
+    EXPECT_LT((fd - k).norm(), 1e-5 * k.norm()) << "node " << node;
+  }
+  // The reaction itself is a potential force: with the springs at rest length (a uniformly
+  // scaled sphere keeps every solid angle, so it is zero) and a dent, it restores.
+  const mesh::Points dented = Scaled(sphere.vertices, 17, 0.9);  // node 17 2 mm inwards
+  const mesh::Points volume_only = VolumeForces(*model->volume_term(), dented);
+  EXPECT_GT(volume_only.col(17).dot(dented.col(17)), 0.0);  // pushed back outwards
+}
+
+TEST(PositionBasedModel, VolumeReactionResistsADent) {
+  // A sphere held at its bottom, pressed down at its top by a constant force: the volume
+  // reaction makes the dent shallower than with the distance constraints alone.
+  const mesh::SurfaceMesh sphere = SmallSphere();
+  const std::vector<int32_t> bottom = NodesAtExtreme(sphere.vertices, 2, false, 0.004);
+  int32_t top = 0;
+  for (int32_t i = 0; i < sphere.vertices.cols(); ++i) {
+    if (sphere.vertices(2, i) > sphere.vertices(2, top)) top = i;
+  }
+  const auto dent = [&](const SolidAngleVolumeParameters& volume) {
+    PositionBasedParameters p = Xpbd(20);
+    p.volume = volume;
+    const auto model = PositionBasedModel::FromSurface(sphere, p);
+    const auto state = model->MakeState();
+    const mesh::Points load = PointLoad(model->num_nodes(), top, Vector3d(0.0, 0.0, -0.01));
+    StepInputs inputs;
+    inputs.dt = 1e-3;
+    inputs.external_forces = &load;
+    inputs.fixed_nodes = bottom;
+    double mean = 0.0;
+    for (int step = 0; step < 400; ++step) {
+      EXPECT_EQ(model->Step(inputs, state.get()), StepStatus::kOk)
+          << "step " << step << " sigma " << volume.sigma_plus;
+      if (step >= 200) mean += sphere.vertices(2, top) - state->positions(2, top);
+    }
+    return mean / 200.0;  // [m], averaged over the last 200 steps
+  };
+  const double springs_only = dent(SolidAngleVolumeParameters{});
+  const double with_volume = dent(VolumeReaction(5e-5, 0.0));
+  const double stiffer_volume = dent(VolumeReaction(2e-4, 0.0));
+  EXPECT_GT(springs_only, 1e-4);
+  EXPECT_LT(with_volume, springs_only);
+  EXPECT_LT(stiffer_volume, with_volume);
+}
+
+TEST(PositionBasedModel, VolumeReactionNeedsAClosedSurface) {
+  PositionBasedParameters p = Xpbd(10);
+  p.volume = VolumeReaction(1e-3, 0.0);
+  const mesh::SurfaceMesh patch = mesh_gen::GenerateBuiltinOrgan("tissue45").surface;  // open
+  try {
+    PositionBasedModel::FromSurface(patch, p);
+    ADD_FAILURE() << "an open surface was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("solid-angle volume"), std::string::npos) << e.what();
+  }
+  p.node_mass = 0.001;
+  p.compliance = 0.01;
+  const std::vector<std::array<int32_t, 2>> edges = {{0, 1}, {1, 2}};
+  EXPECT_THROW(PositionBasedModel::FromEdges(patch.vertices, edges, p), std::invalid_argument);
+  p.volume.sigma_plus = -1.0;
+  EXPECT_THROW(PositionBasedModel::FromSurface(SmallSphere(), p), std::invalid_argument);
+  p.volume.sigma_plus = std::nan("");
+  EXPECT_THROW(PositionBasedModel::FromSurface(SmallSphere(), p), std::invalid_argument);
+}
+
+TEST(PositionBasedModel, VolumeReactionStepAllocatesNothing) {
+  PositionBasedParameters p = Xpbd(10);
+  p.volume = VolumeReaction(1e-4, 1e-4);
+  const auto model = PositionBasedModel::FromSurface(SmallSphere(), p);
+  const auto state = model->MakeState();
+  const mesh::Points load = PointLoad(model->num_nodes(), 3, Vector3d(0.0, 0.0, -0.01));
+  StepInputs inputs;
+  inputs.external_forces = &load;
+  ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  testing::AllocationCounter counter;
+  for (int step = 0; step < 20; ++step)
+    ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  EXPECT_EQ(counter.count(), 0);
 }
 
 }  // namespace
