@@ -11,10 +11,198 @@
 #include "server/models/mass_spring_state.h"
 #include "server/models/particle_mesh.h"
 
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#define SOMASIM_MSS_AVX512 1
+#endif
+
 namespace somasim::models {
 namespace {
 
 using Eigen::Vector3d;
+
+// The explicit force pass runs over the springs in blocks: a block's spring forces are computed
+// (8 at a time where the CPU has AVX-512) into a buffer on the stack, then summed into the nodes.
+constexpr size_t kBlock = 256;  // springs; the buffer (3 × kBlock doubles, 6 KiB) stays in L1
+
+// What the spring-force kernels read. Springs are sorted by (i, j).
+struct SpringArrays {
+  const double* x;            // [m], positions, 3 × num_nodes
+  const double* v;            // [m/s], velocities, 3 × num_nodes
+  size_t num_values;          // 3 × num_nodes
+  const int32_t* i;           // num_springs, first node
+  const int32_t* j;           // num_springs, second node (> i)
+  const double* rest_length;  // [m], num_springs
+  const double* stiffness;    // [N/m]
+  const double* damping;      // [N s/m]
+};
+
+// Seed 002 eq. 1–3, the force F_s [N] each spring s of [begin, end) puts on its first node i
+// (its second node j gets -F_s): F = (K (l - l0) + D ((v_j - v_i)·u)) u, l = |x_j - x_i|,
+// u = (x_j - x_i) / l (u = 0 for a spring of zero length). Written to fx/fy/fz[s - begin].
+void SpringForcesScalar(const SpringArrays& a, size_t begin, size_t end, double* fx, double* fy,
+                        double* fz) {
+  for (size_t s = begin; s < end; ++s) {
+    const size_t i = 3 * static_cast<size_t>(a.i[s]);
+    const size_t j = 3 * static_cast<size_t>(a.j[s]);
+    const double dx = a.x[j] - a.x[i];
+    const double dy = a.x[j + 1] - a.x[i + 1];
+    const double dz = a.x[j + 2] - a.x[i + 2];
+    const double length = std::sqrt(dx * dx + dy * dy + dz * dz);
+    const double inv = length > 0.0 ? 1.0 / length : 0.0;
+    const double ux = dx * inv, uy = dy * inv, uz = dz * inv;
+    const double closing =
+        (a.v[j] - a.v[i]) * ux + (a.v[j + 1] - a.v[i + 1]) * uy + (a.v[j + 2] - a.v[i + 2]) * uz;
+    const double magnitude = a.stiffness[s] * (length - a.rest_length[s]) + a.damping[s] * closing;
+    fx[s - begin] = magnitude * ux;
+    fy[s - begin] = magnitude * uy;
+    fz[s - begin] = magnitude * uz;
+  }
+}
+
+#ifdef SOMASIM_MSS_AVX512
+// The 8 doubles base[index[k]] (the masked form: the unmasked one reads an uninitialised source).
+__attribute__((target("avx512f"))) inline __m512d Gather(__m256i index, const double* base) {
+  return _mm512_mask_i32gather_pd(_mm512_setzero_pd(), 0xFF, index, base, 8);
+}
+
+// SpringForcesScalar, 8 springs at a time (gathers of x and v, fused multiply-adds, 1/l by
+// Newton's method instead of a square root and a division, which would bound the throughput),
+// so results differ from it by rounding only (a few units in the last place of l and u).
+__attribute__((target("avx512f,avx2,fma"))) void SpringForcesAvx512(const SpringArrays& a,
+                                                                    size_t begin, size_t end,
+                                                                    double* fx, double* fy,
+                                                                    double* fz) {
+  const __m512d tiny = _mm512_set1_pd(1e-200);  // [m²]
+  const __m512d half = _mm512_set1_pd(0.5);
+  const __m512d three_halves = _mm512_set1_pd(1.5);
+  size_t s = begin;
+  for (; s + 8 <= end; s += 8) {
+    const __m256i j = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(a.j + s));
+    const __m256i j3 = _mm256_add_epi32(j, _mm256_add_epi32(j, j));
+    // The first nodes are sorted: when the 8 springs' first nodes lie within 5 nodes of the
+    // first one, their x and v come from two 16-double loads and permutes instead of gathers.
+    __m512d xi, yi, zi, vxi, vyi, vzi;
+    const auto base = static_cast<size_t>(a.i[s]);
+    if (a.i[s + 7] - a.i[s] < 5 && 3 * base + 16 <= a.num_values) {
+      const __m256i i =
+          _mm256_sub_epi32(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(a.i + s)),
+                           _mm256_set1_epi32(static_cast<int32_t>(base)));
+      const __m512i i3 =
+          _mm512_maskz_cvtepi32_epi64(0xFF, _mm256_add_epi32(i, _mm256_add_epi32(i, i)));
+      const __m512i i3y = _mm512_add_epi64(i3, _mm512_set1_epi64(1));
+      const __m512i i3z = _mm512_add_epi64(i3, _mm512_set1_epi64(2));
+      const double* xb = a.x + 3 * base;
+      const double* vb = a.v + 3 * base;
+      const __m512d x0 = _mm512_loadu_pd(xb), x1 = _mm512_loadu_pd(xb + 8);
+      const __m512d v0 = _mm512_loadu_pd(vb), v1 = _mm512_loadu_pd(vb + 8);
+      xi = _mm512_permutex2var_pd(x0, i3, x1);
+      yi = _mm512_permutex2var_pd(x0, i3y, x1);
+      zi = _mm512_permutex2var_pd(x0, i3z, x1);
+      vxi = _mm512_permutex2var_pd(v0, i3, v1);
+      vyi = _mm512_permutex2var_pd(v0, i3y, v1);
+      vzi = _mm512_permutex2var_pd(v0, i3z, v1);
+    } else {
+      const __m256i i = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(a.i + s));
+      const __m256i i3 = _mm256_add_epi32(i, _mm256_add_epi32(i, i));
+      xi = Gather(i3, a.x);
+      yi = Gather(i3, a.x + 1);
+      zi = Gather(i3, a.x + 2);
+      vxi = Gather(i3, a.v);
+      vyi = Gather(i3, a.v + 1);
+      vzi = Gather(i3, a.v + 2);
+    }
+    const __m512d dx = _mm512_sub_pd(Gather(j3, a.x), xi);
+    const __m512d dy = _mm512_sub_pd(Gather(j3, a.x + 1), yi);
+    const __m512d dz = _mm512_sub_pd(Gather(j3, a.x + 2), zi);
+    const __m512d dvx = _mm512_sub_pd(Gather(j3, a.v), vxi);
+    const __m512d dvy = _mm512_sub_pd(Gather(j3, a.v + 1), vyi);
+    const __m512d dvz = _mm512_sub_pd(Gather(j3, a.v + 2), vzi);
+    const __m512d l2 = _mm512_fmadd_pd(dz, dz, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dx, dx)));
+    // 1/l from rsqrt14 and two Newton steps y ← y (3/2 - l²/2 y²) (14 → 28 → 56 bits), l = l² y;
+    // both 0 for a spring shorter than 1e-100 m (as good as zero length: no direction).
+    const __m512d h = _mm512_mul_pd(half, l2);
+    __m512d inv = _mm512_maskz_rsqrt14_pd(_mm512_cmp_pd_mask(l2, tiny, _CMP_GT_OQ), l2);
+    inv = _mm512_mul_pd(inv, _mm512_fnmadd_pd(h, _mm512_mul_pd(inv, inv), three_halves));
+    inv = _mm512_mul_pd(inv, _mm512_fnmadd_pd(h, _mm512_mul_pd(inv, inv), three_halves));
+    const __m512d length = _mm512_mul_pd(l2, inv);
+    const __m512d ux = _mm512_mul_pd(dx, inv);
+    const __m512d uy = _mm512_mul_pd(dy, inv);
+    const __m512d uz = _mm512_mul_pd(dz, inv);
+    const __m512d closing =
+        _mm512_fmadd_pd(dvz, uz, _mm512_fmadd_pd(dvy, uy, _mm512_mul_pd(dvx, ux)));
+    const __m512d magnitude = _mm512_fmadd_pd(
+        _mm512_loadu_pd(a.stiffness + s), _mm512_sub_pd(length, _mm512_loadu_pd(a.rest_length + s)),
+        _mm512_mul_pd(_mm512_loadu_pd(a.damping + s), closing));
+    _mm512_storeu_pd(fx + (s - begin), _mm512_mul_pd(magnitude, ux));
+    _mm512_storeu_pd(fy + (s - begin), _mm512_mul_pd(magnitude, uy));
+    _mm512_storeu_pd(fz + (s - begin), _mm512_mul_pd(magnitude, uz));
+  }
+  if (s < end) {
+    SpringForcesScalar(a, s, end, fx + (s - begin), fy + (s - begin), fz + (s - begin));
+  }
+}
+
+bool CpuHasAvx512() {
+  static const bool has = [] {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx512f") != 0;
+  }();
+  return has;
+}
+#else
+void SpringForcesAvx512(const SpringArrays& a, size_t begin, size_t end, double* fx, double* fy,
+                        double* fz) {
+  SpringForcesScalar(a, begin, end, fx, fy, fz);
+}
+bool CpuHasAvx512() { return false; }
+#endif
+
+// The spring pass shared by InternalForces and the explicit step. Adds each spring's force into
+// `pending` (3 × num_nodes) at its second node j, sums the forces of each node's own run (the
+// springs whose first node it is) in registers, and calls finish(node, fx, fy, fz) once per node
+// in increasing order with that sum, as soon as the node's total is known: every spring touching
+// a node has been added by then (springs with j = node come from runs of smaller nodes), and no
+// later spring reads the node (later springs have both nodes above it), so `finish` may move it.
+template <class Finish>
+void SpringPass(const SpringArrays& a, const int32_t* first_start, size_t num_nodes,
+                size_t num_springs, bool use_avx512, double* pending, Finish&& finish) {
+  alignas(64) double buffer[3 * kBlock];
+  double* const bx = buffer;
+  double* const by = buffer + kBlock;
+  double* const bz = buffer + 2 * kBlock;
+  size_t node = 0;
+  double fx = 0.0, fy = 0.0, fz = 0.0;
+  for (size_t begin = 0; begin < num_springs; begin += kBlock) {
+    const size_t end = std::min(begin + kBlock, num_springs);
+    if (use_avx512) {
+      SpringForcesAvx512(a, begin, end, bx, by, bz);
+    } else {
+      SpringForcesScalar(a, begin, end, bx, by, bz);
+    }
+    size_t s = begin;
+    while (s < end) {
+      const auto run_end = static_cast<size_t>(first_start[node + 1]);
+      const size_t stop = std::min(run_end, end);
+      for (; s < stop; ++s) {
+        const size_t k = s - begin;
+        const size_t j = 3 * static_cast<size_t>(a.j[s]);
+        fx += bx[k];
+        fy += by[k];
+        fz += bz[k];
+        pending[j] -= bx[k];
+        pending[j + 1] -= by[k];
+        pending[j + 2] -= bz[k];
+      }
+      if (s == run_end) {
+        finish(node, fx, fy, fz);
+        fx = fy = fz = 0.0;
+        ++node;
+      }
+    }
+  }
+  for (; node < num_nodes; ++node) finish(node, 0.0, 0.0, 0.0);
+}
 
 void CheckParameters(const MassSpringParameters& p) {
   const auto positive_or_raw = [](double physical, double raw, const char* what) {
@@ -171,6 +359,8 @@ std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
       *v = mesh::Points::Zero(3, n);
     }
     state->inverse_diagonal = Eigen::Matrix<double, 9, Eigen::Dynamic>::Zero(9, n);
+  } else {
+    state->pending = mesh::Points::Zero(3, n);
   }
   return state;
 }
@@ -179,47 +369,17 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   // Seed 002 eq. 1–3: f_i += K (l - l0) u + D ((v_j - v_i)·u) u, u = (x_j - x_i) / l; f_j -= ….
   forces->resize(3, rest_.cols());  // a no-op (no allocation) when already sized
   forces->setZero();
-  // Raw pointers hoisted out of the loop and marked non-aliasing, so that stores to f do not make
-  // the compiler reload the member vectors' data pointers.
-  const double* __restrict x = state.positions.data();
-  const double* __restrict v = state.velocities.data();
-  double* __restrict f = forces->data();
-  const int32_t* __restrict spring_j = spring_j_.data();
-  const double* __restrict rest_length = rest_length_.data();
-  const double* __restrict stiffness = stiffness_.data();
-  const double* __restrict damping = damping_.data();
-  const int32_t* __restrict first_start = first_node_start_.data();
-  const auto n = static_cast<size_t>(rest_.cols());
-  // Springs are sorted by their first node i: for each i, its springs form one run, whose force
-  // on i is summed in registers and stored once (a read-modify-write of f[i] per spring would
-  // chain every spring behind the last).
-  for (size_t node = 0; node < n; ++node) {
-    const size_t i = 3 * node;
-    const double xi = x[i], yi = x[i + 1], zi = x[i + 2];
-    const double vxi = v[i], vyi = v[i + 1], vzi = v[i + 2];
-    double fx = 0.0, fy = 0.0, fz = 0.0;
-    const auto end = static_cast<size_t>(first_start[node + 1]);
-    for (auto s = static_cast<size_t>(first_start[node]); s < end; ++s) {
-      const size_t j = 3 * static_cast<size_t>(spring_j[s]);
-      const double dx = x[j] - xi;
-      const double dy = x[j + 1] - yi;
-      const double dz = x[j + 2] - zi;
-      const double length = std::sqrt(dx * dx + dy * dy + dz * dz);
-      const double inv = length > 0.0 ? 1.0 / length : 0.0;
-      const double ux = dx * inv, uy = dy * inv, uz = dz * inv;
-      const double closing = (v[j] - vxi) * ux + (v[j + 1] - vyi) * uy + (v[j + 2] - vzi) * uz;
-      const double magnitude = stiffness[s] * (length - rest_length[s]) + damping[s] * closing;
-      fx += magnitude * ux;
-      fy += magnitude * uy;
-      fz += magnitude * uz;
-      f[j] -= magnitude * ux;
-      f[j + 1] -= magnitude * uy;
-      f[j + 2] -= magnitude * uz;
-    }
-    f[i] += fx;
-    f[i + 1] += fy;
-    f[i + 2] += fz;
-  }
+  double* const f = forces->data();
+  const SpringArrays springs{
+      state.positions.data(), state.velocities.data(), static_cast<size_t>(state.positions.size()),
+      spring_i_.data(),       spring_j_.data(),        rest_length_.data(),
+      stiffness_.data(),      damping_.data()};
+  SpringPass(springs, first_node_start_.data(), static_cast<size_t>(rest_.cols()), spring_j_.size(),
+             CpuHasAvx512(), f, [f](size_t node, double fx, double fy, double fz) {
+               f[3 * node] += fx;
+               f[3 * node + 1] += fy;
+               f[3 * node + 2] += fz;
+             });
 }
 
 void MassSpringModel::AddExternalForces(const StepInputs& inputs, TissueState* base) const {
@@ -240,30 +400,56 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
     return;
   }
   auto* state = static_cast<MassSpringState*>(base);
-  InternalForces(*state, &state->forces);
-  if (inputs.external_forces != nullptr) state->forces += *inputs.external_forces;
+  // One pass: spring forces (seed 002 eq. 1–3) and, as soon as a node's force is complete,
+  // symplectic Euler (seed 002 eq. 4–5) with gravity: v += dt (f/m + g), then x += dt v.
+  // Massless nodes (inverse mass 0) do not move. state->pending is zero between steps: the
+  // attachments go in first, each node's entry is reset once it is used.
+  double* const pending = state->pending.data();
   for (const Attachment& a : inputs.attachments) {
-    state->forces.col(a.node) += a.stiffness * (a.target - state->positions.col(a.node));
+    const Eigen::Index i = a.node;
+    const Vector3d pull = a.stiffness * (a.target - state->positions.col(i));
+    pending[3 * i] += pull.x();
+    pending[3 * i + 1] += pull.y();
+    pending[3 * i + 2] += pull.z();
   }
-  // Symplectic Euler (seed 002 eq. 4–5) with gravity: v += dt (f/m + g), then x += dt v.
-  // Massless nodes (inverse mass 0) do not move.
   const double dt = inputs.dt;
-  const auto n = static_cast<size_t>(rest_.cols());
-  const double* __restrict f = state->forces.data();
-  const double* __restrict inverse_mass = inverse_mass_.data();
-  double* __restrict x = state->positions.data();
-  double* __restrict v = state->velocities.data();
+  const double* const external =
+      inputs.external_forces != nullptr ? inputs.external_forces->data() : nullptr;
+  const double* const inverse_mass = inverse_mass_.data();
+  double* const x = state->positions.data();
+  double* const v = state->velocities.data();
   const double gx = inputs.gravity.x(), gy = inputs.gravity.y(), gz = inputs.gravity.z();
-  for (size_t i = 0; i < n; ++i) {
-    const double w = inverse_mass[i];
-    const double moves = w > 0.0 ? 1.0 : 0.0;
-    v[3 * i] += dt * (w * f[3 * i] + moves * gx);
-    v[3 * i + 1] += dt * (w * f[3 * i + 1] + moves * gy);
-    v[3 * i + 2] += dt * (w * f[3 * i + 2] + moves * gz);
-    x[3 * i] += dt * v[3 * i];
-    x[3 * i + 1] += dt * v[3 * i + 1];
-    x[3 * i + 2] += dt * v[3 * i + 2];
-  }
+  const SpringArrays springs{x,
+                             v,
+                             static_cast<size_t>(state->positions.size()),
+                             spring_i_.data(),
+                             spring_j_.data(),
+                             rest_length_.data(),
+                             stiffness_.data(),
+                             damping_.data()};
+  SpringPass(springs, first_node_start_.data(), static_cast<size_t>(rest_.cols()), spring_j_.size(),
+             CpuHasAvx512(), pending,
+             [pending, external, inverse_mass, x, v, dt, gx, gy, gz](size_t node, double fx,
+                                                                     double fy, double fz) {
+               const size_t i = 3 * node;
+               fx += pending[i];
+               fy += pending[i + 1];
+               fz += pending[i + 2];
+               pending[i] = pending[i + 1] = pending[i + 2] = 0.0;
+               if (external != nullptr) {
+                 fx += external[i];
+                 fy += external[i + 1];
+                 fz += external[i + 2];
+               }
+               const double w = inverse_mass[node];
+               const double moves = w > 0.0 ? 1.0 : 0.0;
+               v[i] += dt * (w * fx + moves * gx);
+               v[i + 1] += dt * (w * fy + moves * gy);
+               v[i + 2] += dt * (w * fz + moves * gz);
+               x[i] += dt * v[i];
+               x[i + 1] += dt * v[i + 1];
+               x[i + 2] += dt * v[i + 2];
+             });
   ApplyFixedAndPrescribed(inputs, state);
 }
 

@@ -16,6 +16,9 @@ namespace somasim::models {
 class MassSpringState final : public TissueState {
  public:
   mesh::Points forces;  // [N], 3 × num_nodes
+  // Explicit step only: forces [N] accumulated at nodes whose own turn in the pass has not come
+  // yet (3 × num_nodes); zero between steps.
+  mesh::Points pending;
   // Implicit Euler only.
   mesh::Points spring_direction;          // u, 3 × num_springs
   std::vector<double> spring_transverse;  // (1 - l0/l)₊, num_springs
