@@ -110,6 +110,23 @@ class MassSpringImplicitStep {
     }
   }
 
+  // q += (stiffness_coeff k_s + damping_coeff d_i) p on every anchored node (seed 001's
+  // generalised springs: their part of A p, or of K v); returns their part of p · q.
+  static double AddAnchors(const MassSpringModel& model, double stiffness_coeff,
+                           double damping_coeff, const double* p, double* q) {
+    double pq = 0.0;
+    for (size_t a = 0; a < model.anchor_nodes_.size(); ++a) {
+      const auto i = 3 * static_cast<size_t>(model.anchor_nodes_[a]);
+      const double k =
+          stiffness_coeff * model.anchor_stiffness_ + damping_coeff * model.anchor_damping_[a];
+      q[i] += k * p[i];
+      q[i + 1] += k * p[i + 1];
+      q[i + 2] += k * p[i + 2];
+      pq += k * (p[i] * p[i] + p[i + 1] * p[i + 1] + p[i + 2] * p[i + 2]);
+    }
+    return pq;
+  }
+
   // q = A p over the springs and masses (attachments and constraints are the caller's); returns
   // p · q. Nodes whose p is zero (the constrained ones) add nothing to the dot product.
   static double Multiply(const MassSpringModel& model, const MassSpringState& state,
@@ -256,6 +273,15 @@ void MassSpringModel::AdvanceImplicit(const StepInputs& inputs, TissueState* bas
   state->inverse_diagonal.setZero();
   MassSpringImplicitStep::Linearise(*this, dt, state);
   AddAttachments(inputs, 1.0, state->velocities.data(), state->product.data());
+  MassSpringImplicitStep::AddAnchors(*this, 1.0, 0.0, state->velocities.data(),
+                                     state->product.data());
+  for (size_t a = 0; a < anchor_nodes_.size(); ++a) {
+    double* block = state->inverse_diagonal.col(anchor_nodes_[a]).data();
+    const double k = dt2 * anchor_stiffness_ + dt * anchor_damping_[a];
+    block[0] += k;
+    block[3] += k;
+    block[5] += k;
+  }
 
   std::fill(state->constrained.begin(), state->constrained.end(), uint8_t{0});
   for (const std::span<const int32_t> nodes : {inputs.fixed_nodes, inputs.prescribed_nodes}) {
@@ -314,6 +340,7 @@ void MassSpringModel::AdvanceImplicit(const StepInputs& inputs, TissueState* bas
   } else {
     ZeroConstrained(inputs, dv);
     MassSpringImplicitStep::Multiply(*this, *state, dv, q);
+    MassSpringImplicitStep::AddAnchors(*this, dt2, dt, dv, q);
     AddAttachments(inputs, dt2, dv, q);
     ZeroConstrained(inputs, q);
     double warm_norm2 = 0.0;
@@ -337,6 +364,7 @@ void MassSpringModel::AdvanceImplicit(const StepInputs& inputs, TissueState* bas
     converged = residual_norm2 <= threshold2;
     while (!converged && iterations < cg_max_iterations_) {
       double curvature = MassSpringImplicitStep::Multiply(*this, *state, p, q);
+      curvature += MassSpringImplicitStep::AddAnchors(*this, dt2, dt, p, q);
       for (const Attachment& a : inputs.attachments) {
         const auto i = 3 * static_cast<size_t>(a.node);
         const double k = dt2 * a.stiffness;

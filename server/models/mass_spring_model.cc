@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "server/models/generalised_surface.h"
 #include "server/models/mass_spring_state.h"
 #include "server/models/particle_mesh.h"
 
@@ -232,6 +233,9 @@ void CheckParameters(const MassSpringParameters& p) {
   if (!(p.speed_limit > 0.0)) {
     throw std::invalid_argument("mass-spring: speed_limit [m/s] must be > 0");
   }
+  if (!(p.anchor_stiffness >= 0.0) || !std::isfinite(p.anchor_stiffness)) {
+    throw std::invalid_argument("mass-spring: anchor_stiffness [N/m] must be finite and >= 0");
+  }
 }
 
 }  // namespace
@@ -251,6 +255,20 @@ std::unique_ptr<MassSpringModel> MassSpringModel::FromSurface(
   const MeshEdges edges = SurfaceEdges(surface, parameters.thickness, "mass-spring");
   std::unique_ptr<MassSpringModel> model(new MassSpringModel());
   model->Build(surface.vertices, edges.edges, edges.edge_size, edges.node_size, parameters);
+  return model;
+}
+
+std::unique_ptr<MassSpringModel> MassSpringModel::FromGeneralisedSurface(
+    const mesh::TetMesh& mesh, const MassSpringParameters& parameters) {
+  CheckParameters(parameters);
+  if (!(parameters.anchor_stiffness > 0.0)) {
+    throw std::invalid_argument(
+        "mass-spring: a generalised surface mesh needs anchor_stiffness [N/m] > 0");
+  }
+  const OuterShell shell = SelectOuterShell(mesh, parameters.shell_fraction);
+  const MeshEdges edges = ShellEdges(mesh, shell);
+  std::unique_ptr<MassSpringModel> model(new MassSpringModel());
+  model->Build(mesh.vertices, edges.edges, edges.edge_size, edges.node_size, parameters);
   return model;
 }
 
@@ -339,6 +357,17 @@ void MassSpringModel::Build(const mesh::Points& rest,
     node_springs_[static_cast<size_t>(fill[static_cast<size_t>(spring_j_[s])]++)] =
         static_cast<int32_t>(s);
   }
+  anchor_nodes_.clear();
+  anchor_damping_.clear();
+  anchor_stiffness_ = p.anchor_stiffness;
+  if (anchor_stiffness_ > 0.0) {
+    for (size_t i = 0; i < n; ++i) {
+      if (mass_[i] > 0.0) {
+        anchor_nodes_.push_back(static_cast<int32_t>(i));
+        anchor_damping_.push_back(2.0 * p.damping_ratio * std::sqrt(anchor_stiffness_ * mass_[i]));
+      }
+    }
+  }
   set_speed_limit(p.speed_limit);
   integrator_ = p.integrator;
   cg_tolerance_ = p.cg_tolerance;
@@ -380,6 +409,22 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
                f[3 * node + 1] += fy;
                f[3 * node + 2] += fz;
              });
+  AddAnchorForces(state, f);
+}
+
+void MassSpringModel::AddAnchorForces(const TissueState& state, double* forces) const {
+  // Seed 001 eq. 10: f_i = k_s (x0_i - x_i), plus its damping -d_i v_i.
+  const double* __restrict x = state.positions.data();
+  const double* __restrict v = state.velocities.data();
+  const double* __restrict x0 = rest_.data();
+  const double k = anchor_stiffness_;
+  for (size_t a = 0; a < anchor_nodes_.size(); ++a) {
+    const auto i = 3 * static_cast<size_t>(anchor_nodes_[a]);
+    const double d = anchor_damping_[a];
+    forces[i] += k * (x0[i] - x[i]) - d * v[i];
+    forces[i + 1] += k * (x0[i + 1] - x[i + 1]) - d * v[i + 1];
+    forces[i + 2] += k * (x0[i + 2] - x[i + 2]) - d * v[i + 2];
+  }
 }
 
 void MassSpringModel::AddExternalForces(const StepInputs& inputs, TissueState* base) const {
@@ -403,8 +448,9 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   // One pass: spring forces (seed 002 eq. 1–3) and, as soon as a node's force is complete,
   // symplectic Euler (seed 002 eq. 4–5) with gravity: v += dt (f/m + g), then x += dt v.
   // Massless nodes (inverse mass 0) do not move. state->pending is zero between steps: the
-  // attachments go in first, each node's entry is reset once it is used.
+  // attachments and anchors go in first, each node's entry is reset once it is used.
   double* const pending = state->pending.data();
+  AddAnchorForces(*state, pending);
   for (const Attachment& a : inputs.attachments) {
     const Eigen::Index i = a.node;
     const Vector3d pull = a.stiffness * (a.target - state->positions.col(i));
@@ -468,6 +514,9 @@ Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_
     k_local += stiffness_[s] *
                (uu + (1.0 - rest_length_[s] / length) * (Eigen::Matrix3d::Identity() - uu));
   }
+  if (anchor_stiffness_ > 0.0 && mass_[static_cast<size_t>(node)] > 0.0) {
+    k_local += anchor_stiffness_ * Eigen::Matrix3d::Identity();
+  }
   return k_local;
 }
 
@@ -479,6 +528,10 @@ EnergyReport MassSpringModel::Energy(const TissueState& state,
         (state.positions.col(spring_j_[s]) - state.positions.col(spring_i_[s])).norm() -
         rest_length_[s];
     report.elastic += 0.5 * stiffness_[s] * stretch * stretch;
+  }
+  for (const int32_t node : anchor_nodes_) {  // seed 001: ½ k_s |x - x0|²
+    report.elastic +=
+        0.5 * anchor_stiffness_ * (state.positions.col(node) - rest_.col(node)).squaredNorm();
   }
   for (Eigen::Index i = 0; i < rest_.cols(); ++i) {
     const double m = mass_[static_cast<size_t>(i)];
