@@ -4,9 +4,13 @@
 #include <array>
 #include <cassert>
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <stdexcept>
 #include <string>
+#include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "common/mesh/geometry.h"
@@ -26,21 +30,24 @@ using Eigen::Vector3d;
 constexpr double kDefaultDt = 1e-3;  // [s] seed-mode k_eff before the first step
 
 // The state of a position-based model: the base state, the multipliers of the last step and the
-// scratch of a step, all sized by MakeState so that stepping allocates nothing.
+// scratch of a step, all sized by MakeState so that stepping allocates nothing. The sweeps run on
+// an internal copy of the positions: one 32-byte record (x, y, z, w) per node, w the inverse mass
+// of this step, in the model's internal node order (see PositionBasedModel::OrderNodes).
 class PositionBasedState final : public TissueState {
  public:
-  mesh::Points start;                // x at the start of the step [m], 3 × num_nodes
-  mesh::Points predicted;            // x̃ after prediction and boundary conditions, 3 × num_nodes
-  mesh::Points impulse;              // Σ ∇C λ per node [N s²] (XPBD), 3 × num_nodes
-  std::vector<double> inverse_mass;  // w this step (0 for fixed, prescribed), num_nodes
-  std::vector<double> lambda;        // multipliers [N s²], num_constraints, in sweep order
+  // The 4 × num_nodes internal records, 64-byte aligned inside node_buffer.
+  double* nodes() { return node_buffer.data() + node_offset; }
+  std::vector<double> node_buffer;   // 4 num_nodes + 8
+  size_t node_offset = 0;            // of the first record in node_buffer
+  std::vector<double> predicted;     // x̃ (primal correction), 4 × num_nodes, internal order
+  std::vector<double> impulse;       // Σ ∇C λ per node [N s²], 4 × num_nodes, internal order
+  std::vector<double> inverse_mass;  // w this step (0 for fixed, prescribed), internal order
+  std::vector<double> lambda;  // multipliers [N s²] of this step, num_constraints, sweep order
   // Per-constraint factors of the step, in sweep order (num_constraints), functions of Δt and w
-  // only: recomputed when either changes (see PrepareSweep).
-  std::vector<double> sweep_w1;     // w_i [1/kg]
-  std::vector<double> sweep_w2;     // w_j [1/kg]
+  // only: recomputed when either changes.
   std::vector<double> sweep_alpha;  // α̃ = compliance/Δt² [1/kg] (0 in seed mode)
   std::vector<double> sweep_gain;  // 1/(w_i + w_j + α̃) (seed: k/(w_i + w_j)); 0 if w_i + w_j = 0
-  std::vector<double> prepared_w;  // the w the factors were computed with, num_nodes
+  std::vector<double> prepared_w;  // the w the factors were computed with, internal order
   double prepared_dt = 0.0;        // and the Δt [s] (0: not yet)
   double last_dt = 0.0;            // [s] of the last accepted step, 0 before any
   // Attachments, merged per node: Σ_a k_a (t_a - x) = K (t̄ - x) with K = Σ k_a,
@@ -52,46 +59,44 @@ class PositionBasedState final : public TissueState {
   size_t num_attached = 0;
 
  protected:
+  // λ is zeroed at the start of every step, so an accepted step's multipliers are kept by a swap
+  // (no copy): good_lambda_ then holds them (LastConstraintResidual reads it).
   void SaveGood() override {
-    good_lambda_ = lambda;  // same size: no allocation
+    lambda.swap(good_lambda_);
     good_last_dt_ = last_dt;
   }
-  void RestoreGood() override {
-    lambda = good_lambda_;
-    last_dt = good_last_dt_;
-  }
+  void RestoreGood() override { last_dt = good_last_dt_; }
 
  private:
   friend class somasim::models::PositionBasedModel;
-  std::vector<double> good_lambda_;
-  mesh::Points volume_forces;  // [N], 3 × num_nodes when the volume reaction is on
+  std::vector<double> good_lambda_;  // the last accepted step's λ, sweep order
+  mesh::Points volume_forces;        // [N], 3 × num_nodes when the volume reaction is on
   double good_last_dt_ = 0.0;
 };
 
 // The arrays one sweep reads, in sweep order. Projecting slot e: d = x_j - x_i, l = |d|,
 // t = l - a + α̃ λ, Δλ = -t · gain, λ += Δλ, x_i -= w_i Δλ d/l, x_j += w_j Δλ d/l. In XPBD mode
 // (gain = 1/(w_i + w_j + α̃)) that is Macklin et al. 2016 eq. 18; in seed mode (α̃ = 0,
-// gain = k/(w_i + w_j)) seed 004 eq. 2–3, λ then being unused.
+// gain = k/(w_i + w_j)) seed 004 eq. 2–3, λ then being unused. Positions and inverse masses come
+// from the internal node records (x, y, z, w).
 struct SweepArrays {
-  const int32_t* i3;
-  const int32_t* j3;
+  const int32_t* i4;  // offset 4 p of node i's record
+  const int32_t* j4;
   const double* rest;
   const double* inverse_rest;
-  const double* w1;
-  const double* w2;
   const double* alpha;
   const double* gain;
   double* lambda;
 };
 
-// Projects slots [begin, end) in order onto x (3 × n, column-major); returns the largest
+// Projects slots [begin, end) in order onto the node records x (4 × n); returns the largest
 // relative residual |C + α̃ λ|/a seen before each projection (0 unless kResidual).
 template <bool kResidual>
 double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __restrict x) {
   double residual = 0.0;
   for (size_t e = begin; e < end; ++e) {
-    double* __restrict xi = x + s.i3[e];
-    double* __restrict xj = x + s.j3[e];
+    double* __restrict xi = x + s.i4[e];
+    double* __restrict xj = x + s.j4[e];
     const double dx = xj[0] - xi[0];
     const double dy = xj[1] - xi[1];
     const double dz = xj[2] - xi[2];
@@ -103,8 +108,8 @@ double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __r
     const double dlambda = -t * s.gain[e];
     s.lambda[e] += dlambda;
     const double f = dlambda / length;
-    const double fi = s.w1[e] * f;
-    const double fj = s.w2[e] * f;
+    const double fi = xi[3] * f;
+    const double fj = xj[3] * f;
     xi[0] -= fi * dx;
     xi[1] -= fi * dy;
     xi[2] -= fi * dz;
@@ -116,92 +121,141 @@ double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __r
 }
 
 #ifdef SOMASIM_PBD_AVX512
-// ProjectScalar, 8 slots at a time (gathers, then scalar stores): valid only when no two slots
-// of [begin, end) share a node (one colour), so that the order within a vector does not matter. 1/l
-// comes from rsqrt14 and two Newton steps (relative error ~1e-16), so results differ from the
-// scalar sweep by rounding.
+// 8 node records (x, y, z, w) at x + offset[0..7] (32-byte aligned) as the rows X, Y, Z, W of
+// 8 lanes: two 256-bit loads per 512-bit register, then an 8 × 4 transpose (unpacks and
+// two-source permutes).
+// (The masked forms of unpack and extract, all lanes set, are the plain instructions without
+// gcc-12's uninitialised-value warnings.)
+struct Lanes {
+  __m512d x, y, z, w;
+};
+
+// Records offset[a] and offset[a + 4] in one register.
+__attribute__((target("avx512f"))) inline __m512d LoadPair(const double* x, const int32_t* offset,
+                                                           int a) {
+  return _mm512_mask_broadcast_f64x4(_mm512_castpd256_pd512(_mm256_load_pd(x + offset[a])), 0xF0,
+                                     _mm256_load_pd(x + offset[a + 4]));
+}
+
+__attribute__((target("avx512f"))) inline Lanes LoadRecords(const double* x, const int32_t* offset,
+                                                            __m512i low, __m512i high) {
+  const __m512d r04 = LoadPair(x, offset, 0);  // x0 y0 z0 w0 x4 y4 z4 w4
+  const __m512d r15 = LoadPair(x, offset, 1);
+  const __m512d r26 = LoadPair(x, offset, 2);
+  const __m512d r37 = LoadPair(x, offset, 3);
+  const __m512d t0 = _mm512_mask_unpacklo_pd(r04, 0xFF, r04, r15);  // x0 x1 z0 z1 x4 x5 z4 z5
+  const __m512d t1 = _mm512_mask_unpackhi_pd(r04, 0xFF, r04, r15);  // y0 y1 w0 w1 y4 y5 w4 w5
+  const __m512d t2 = _mm512_mask_unpacklo_pd(r26, 0xFF, r26, r37);  // x2 x3 z2 z3 x6 x7 z6 z7
+  const __m512d t3 = _mm512_mask_unpackhi_pd(r26, 0xFF, r26, r37);  // y2 y3 w2 w3 y6 y7 w6 w7
+  return {_mm512_permutex2var_pd(t0, low, t2), _mm512_permutex2var_pd(t1, low, t3),
+          _mm512_permutex2var_pd(t0, high, t2), _mm512_permutex2var_pd(t1, high, t3)};
+}
+
+// The inverse of LoadPair.
+__attribute__((target("avx512f"))) inline void StorePair(__m512d record, double* x,
+                                                         const int32_t* offset, int a) {
+  const __m256d unused = _mm256_setzero_pd();
+  _mm256_store_pd(x + offset[a], _mm512_mask_extractf64x4_pd(unused, 0xF, record, 0));
+  _mm256_store_pd(x + offset[a + 4], _mm512_mask_extractf64x4_pd(unused, 0xF, record, 1));
+}
+
+// The inverse of LoadRecords.
+__attribute__((target("avx512f"))) inline void StoreRecords(const Lanes& r, double* x,
+                                                            const int32_t* offset, __m512i low,
+                                                            __m512i high) {
+  const __m512d t0 = _mm512_permutex2var_pd(r.x, low, r.z);   // x0 x1 z0 z1 x4 x5 z4 z5
+  const __m512d t1 = _mm512_permutex2var_pd(r.y, low, r.w);   // y0 y1 w0 w1 y4 y5 w4 w5
+  const __m512d t2 = _mm512_permutex2var_pd(r.x, high, r.z);  // x2 x3 z2 z3 x6 x7 z6 z7
+  const __m512d t3 = _mm512_permutex2var_pd(r.y, high, r.w);  // y2 y3 w2 w3 y6 y7 w6 w7
+  StorePair(_mm512_mask_unpacklo_pd(t0, 0xFF, t0, t1), x, offset, 0);
+  StorePair(_mm512_mask_unpackhi_pd(t0, 0xFF, t0, t1), x, offset, 1);
+  StorePair(_mm512_mask_unpacklo_pd(t2, 0xFF, t2, t3), x, offset, 2);
+  StorePair(_mm512_mask_unpackhi_pd(t2, 0xFF, t2, t3), x, offset, 3);
+}
+
+// The projection of 8 slots from their loaded records (see SweepArrays): updates i and j in
+// place, stores λ + Δλ, and folds |t|/a into worst when kResidual.
 template <bool kResidual>
-__attribute__((target("avx512f"))) double ProjectAvx512(const SweepArrays& s, size_t begin,
-                                                        size_t end, double* x) {
+__attribute__((target("avx512f"), always_inline)) inline void ProjectLanes(const SweepArrays& s,
+                                                                           size_t e, Lanes* i,
+                                                                           Lanes* j,
+                                                                           __m512d* worst) {
   const __m512d zero = _mm512_setzero_pd();
   const __m512d three_halves = _mm512_set1_pd(1.5);
   const __m512d half = _mm512_set1_pd(0.5);
-  const __m512i sign_mask = _mm512_set1_epi64(INT64_MAX);
-  __m512d worst = zero;
-  for (size_t e = begin; e < end; e += 8) {
-    const size_t left = end - e;
-    const auto lanes =
-        static_cast<__mmask8>(left >= 8 ? 0xFFU : (1U << static_cast<unsigned>(left)) - 1U);
-    __m256i i3;
-    __m256i j3;
-    if (left >= 8) {
-      i3 = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(s.i3 + e));
-      j3 = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(s.j3 + e));
-    } else {  // the colour's last, partial vector: masked lanes gather from node 0, unused
-      alignas(32) int32_t tail_i[8] = {};
-      alignas(32) int32_t tail_j[8] = {};
-      std::copy(s.i3 + e, s.i3 + end, tail_i);
-      std::copy(s.j3 + e, s.j3 + end, tail_j);
-      i3 = _mm256_load_si256(reinterpret_cast<const __m256i*>(tail_i));
-      j3 = _mm256_load_si256(reinterpret_cast<const __m256i*>(tail_j));
-    }
-    const __m512d xi = _mm512_mask_i32gather_pd(zero, lanes, i3, x, 8);
-    const __m512d yi = _mm512_mask_i32gather_pd(zero, lanes, i3, x + 1, 8);
-    const __m512d zi = _mm512_mask_i32gather_pd(zero, lanes, i3, x + 2, 8);
-    const __m512d xj = _mm512_mask_i32gather_pd(zero, lanes, j3, x, 8);
-    const __m512d yj = _mm512_mask_i32gather_pd(zero, lanes, j3, x + 1, 8);
-    const __m512d zj = _mm512_mask_i32gather_pd(zero, lanes, j3, x + 2, 8);
-    const __m512d dx = _mm512_sub_pd(xj, xi);
-    const __m512d dy = _mm512_sub_pd(yj, yi);
-    const __m512d dz = _mm512_sub_pd(zj, zi);
-    const __m512d l2 = _mm512_fmadd_pd(dz, dz, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dx, dx)));
-    const __mmask8 ok = _mm512_mask_cmp_pd_mask(lanes, l2, zero, _CMP_GT_OQ);
-    // 1/l: y ← y (3/2 - l²/2 y²), twice.
-    const __m512d h = _mm512_mul_pd(half, l2);
-    __m512d y = _mm512_maskz_rsqrt14_pd(ok, l2);
-    y = _mm512_mul_pd(y, _mm512_fnmadd_pd(h, _mm512_mul_pd(y, y), three_halves));
-    y = _mm512_mul_pd(y, _mm512_fnmadd_pd(h, _mm512_mul_pd(y, y), three_halves));
-    const __m512d length = _mm512_mul_pd(l2, y);  // 0 where l = 0
-    const __m512d lambda = _mm512_maskz_loadu_pd(lanes, s.lambda + e);
-    const __m512d t =
-        _mm512_fmadd_pd(_mm512_maskz_loadu_pd(lanes, s.alpha + e), lambda,
-                        _mm512_sub_pd(length, _mm512_maskz_loadu_pd(lanes, s.rest + e)));
-    if constexpr (kResidual) {
-      const __m512d relative =
-          _mm512_mul_pd(_mm512_castsi512_pd(_mm512_and_si512(_mm512_castpd_si512(t), sign_mask)),
-                        _mm512_maskz_loadu_pd(lanes, s.inverse_rest + e));
-      worst = _mm512_mask_max_pd(worst, lanes, relative, worst);
-    }
-    const __m512d dlambda =
-        _mm512_maskz_mul_pd(ok, _mm512_sub_pd(zero, t), _mm512_maskz_loadu_pd(lanes, s.gain + e));
-    _mm512_mask_storeu_pd(s.lambda + e, ok, _mm512_add_pd(lambda, dlambda));
-    const __m512d f = _mm512_mul_pd(dlambda, y);
-    const __m512d fi = _mm512_mul_pd(_mm512_maskz_loadu_pd(lanes, s.w1 + e), f);
-    const __m512d fj = _mm512_mul_pd(_mm512_maskz_loadu_pd(lanes, s.w2 + e), f);
-    // Scalar stores from a buffer beat six scatters (no two lanes share a node; a lane whose
-    // length is 0 writes back the values it read).
-    alignas(64) double updated[6][8];
-    _mm512_store_pd(updated[0], _mm512_fnmadd_pd(fi, dx, xi));
-    _mm512_store_pd(updated[1], _mm512_fnmadd_pd(fi, dy, yi));
-    _mm512_store_pd(updated[2], _mm512_fnmadd_pd(fi, dz, zi));
-    _mm512_store_pd(updated[3], _mm512_fmadd_pd(fj, dx, xj));
-    _mm512_store_pd(updated[4], _mm512_fmadd_pd(fj, dy, yj));
-    _mm512_store_pd(updated[5], _mm512_fmadd_pd(fj, dz, zj));
-    const size_t count = std::min<size_t>(left, 8);
-    for (size_t k = 0; k < count; ++k) {
-      double* xi_k = x + s.i3[e + k];
-      double* xj_k = x + s.j3[e + k];
-      xi_k[0] = updated[0][k];
-      xi_k[1] = updated[1][k];
-      xi_k[2] = updated[2][k];
-      xj_k[0] = updated[3][k];
-      xj_k[1] = updated[4][k];
-      xj_k[2] = updated[5][k];
-    }
+  const __m512d dx = _mm512_sub_pd(j->x, i->x);
+  const __m512d dy = _mm512_sub_pd(j->y, i->y);
+  const __m512d dz = _mm512_sub_pd(j->z, i->z);
+  const __m512d l2 = _mm512_fmadd_pd(dz, dz, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dx, dx)));
+  const __mmask8 ok = _mm512_cmp_pd_mask(l2, zero, _CMP_GT_OQ);
+  // 1/l: y ← y (3/2 - l²/2 y²), twice.
+  const __m512d h = _mm512_mul_pd(half, l2);
+  __m512d y = _mm512_maskz_rsqrt14_pd(ok, l2);
+  y = _mm512_mul_pd(y, _mm512_fnmadd_pd(h, _mm512_mul_pd(y, y), three_halves));
+  y = _mm512_mul_pd(y, _mm512_fnmadd_pd(h, _mm512_mul_pd(y, y), three_halves));
+  const __m512d length = _mm512_mul_pd(l2, y);  // 0 where l = 0
+  const __m512d lambda = _mm512_loadu_pd(s.lambda + e);
+  const __m512d t = _mm512_fmadd_pd(_mm512_loadu_pd(s.alpha + e), lambda,
+                                    _mm512_sub_pd(length, _mm512_loadu_pd(s.rest + e)));
+  if constexpr (kResidual) {
+    const __m512i sign_mask = _mm512_set1_epi64(INT64_MAX);
+    const __m512d relative =
+        _mm512_mul_pd(_mm512_castsi512_pd(_mm512_and_si512(_mm512_castpd_si512(t), sign_mask)),
+                      _mm512_loadu_pd(s.inverse_rest + e));
+    *worst = _mm512_mask_max_pd(*worst, 0xFF, *worst, relative);
+  }
+  const __m512d dlambda =
+      _mm512_maskz_mul_pd(ok, _mm512_sub_pd(zero, t), _mm512_loadu_pd(s.gain + e));
+  _mm512_storeu_pd(s.lambda + e, _mm512_add_pd(lambda, dlambda));
+  const __m512d f = _mm512_mul_pd(dlambda, y);  // 0 where l = 0: those lanes do not move
+  const __m512d fi = _mm512_mul_pd(i->w, f);
+  const __m512d fj = _mm512_mul_pd(j->w, f);
+  i->x = _mm512_fnmadd_pd(fi, dx, i->x);
+  i->y = _mm512_fnmadd_pd(fi, dy, i->y);
+  i->z = _mm512_fnmadd_pd(fi, dz, i->z);
+  j->x = _mm512_fmadd_pd(fj, dx, j->x);
+  j->y = _mm512_fmadd_pd(fj, dy, j->y);
+  j->z = _mm512_fmadd_pd(fj, dz, j->z);
+}
+
+// ProjectScalar, 16 then 8 slots at a time: valid only when no two slots of [begin, end) share a
+// node (one colour), so that the order within a vector does not matter; two independent groups
+// of 8 per iteration let their latency chains overlap. The last (end - begin) % 8 slots go
+// through ProjectScalar. 1/l comes from rsqrt14 and two Newton steps (relative error ~1e-16), so
+// results differ from the scalar sweep by rounding.
+template <bool kResidual>
+__attribute__((target("avx512f"))) double ProjectAvx512(const SweepArrays& arrays, size_t begin,
+                                                        size_t end, double* x) {
+  const SweepArrays s = arrays;  // local: the record stores may alias anything
+  // Lanes 0 1 8 9 4 5 12 13 and 2 3 10 11 6 7 14 15 of two registers (the transpose).
+  const __m512i low = _mm512_set_epi64(13, 12, 5, 4, 9, 8, 1, 0);
+  const __m512i high = _mm512_set_epi64(15, 14, 7, 6, 11, 10, 3, 2);
+  __m512d worst = _mm512_setzero_pd();
+  size_t e = begin;
+  for (; e + 16 <= end; e += 16) {
+    Lanes i0 = LoadRecords(x, s.i4 + e, low, high);
+    Lanes j0 = LoadRecords(x, s.j4 + e, low, high);
+    Lanes i1 = LoadRecords(x, s.i4 + e + 8, low, high);
+    Lanes j1 = LoadRecords(x, s.j4 + e + 8, low, high);
+    ProjectLanes<kResidual>(s, e, &i0, &j0, &worst);
+    ProjectLanes<kResidual>(s, e + 8, &i1, &j1, &worst);
+    StoreRecords(i0, x, s.i4 + e, low, high);
+    StoreRecords(j0, x, s.j4 + e, low, high);
+    StoreRecords(i1, x, s.i4 + e + 8, low, high);
+    StoreRecords(j1, x, s.j4 + e + 8, low, high);
+  }
+  if (e + 8 <= end) {
+    Lanes i0 = LoadRecords(x, s.i4 + e, low, high);
+    Lanes j0 = LoadRecords(x, s.j4 + e, low, high);
+    ProjectLanes<kResidual>(s, e, &i0, &j0, &worst);
+    StoreRecords(i0, x, s.i4 + e, low, high);
+    StoreRecords(j0, x, s.j4 + e, low, high);
+    e += 8;
   }
   alignas(64) double lane_worst[8];
   _mm512_store_pd(lane_worst, worst);
-  return *std::max_element(lane_worst, lane_worst + 8);
+  const double tail = ProjectScalar<kResidual>(s, e, end, x);
+  return std::max(tail, *std::max_element(lane_worst, lane_worst + 8));
 }
 
 bool CpuHasAvx512() {
@@ -370,27 +424,79 @@ void PositionBasedModel::Build(const mesh::Points& rest,
     node_edges_[static_cast<size_t>(fill[static_cast<size_t>(edge_j_[e])]++)] =
         static_cast<int32_t>(e);
   }
+  OrderNodes();
   ColourConstraints();
   simd_ = p.vectorised && CpuHasAvx512();
   set_speed_limit(p.speed_limit);
 }
 
+void PositionBasedModel::OrderNodes() {
+  // Reverse Cuthill–McKee on the constraint graph (breadth first from a node of least degree,
+  // neighbours by increasing degree, then reversed; component by component), so that the
+  // records a sweep touches in turn lie close together in memory.
+  const size_t n = mass_.size();
+  const auto degree = [this](size_t i) { return node_edge_start_[i + 1] - node_edge_start_[i]; };
+  const auto by_degree = [&degree](int32_t a, int32_t b) {
+    const int32_t da = degree(static_cast<size_t>(a));
+    const int32_t db = degree(static_cast<size_t>(b));
+    return da != db ? da < db : a < b;
+  };
+  std::vector<int32_t> starts(n);
+  for (size_t i = 0; i < n; ++i) starts[i] = static_cast<int32_t>(i);
+  std::sort(starts.begin(), starts.end(), by_degree);
+  std::vector<char> seen(n, 0);
+  std::vector<int32_t> order;
+  order.reserve(n);
+  for (const int32_t start : starts) {
+    if (seen[static_cast<size_t>(start)] != 0) continue;
+    seen[static_cast<size_t>(start)] = 1;
+    size_t head = order.size();
+    order.push_back(start);
+    while (head < order.size()) {
+      const auto node = static_cast<size_t>(order[head++]);
+      const size_t first = order.size();
+      for (int32_t slot = node_edge_start_[node]; slot < node_edge_start_[node + 1]; ++slot) {
+        const auto e = static_cast<size_t>(node_edges_[static_cast<size_t>(slot)]);
+        const int32_t other = static_cast<size_t>(edge_i_[e]) == node ? edge_j_[e] : edge_i_[e];
+        if (seen[static_cast<size_t>(other)] != 0) continue;
+        seen[static_cast<size_t>(other)] = 1;
+        order.push_back(other);
+      }
+      std::sort(order.begin() + static_cast<std::ptrdiff_t>(first), order.end(), by_degree);
+    }
+  }
+  std::reverse(order.begin(), order.end());
+  node_order_ = std::move(order);
+  node_slot_.resize(n);
+  for (size_t p = 0; p < n; ++p)
+    node_slot_[static_cast<size_t>(node_order_[p])] = static_cast<int32_t>(p);
+}
+
 void PositionBasedModel::ColourConstraints() {
-  // Greedy colouring in sorted order: each constraint takes the lowest colour that neither of
-  // its nodes has yet. At most 2 · (max degree) - 1 colours.
+  // Greedy colouring, constraints taken by their internal node slots (lower, then upper): each
+  // takes the lowest colour that neither of its nodes has yet. At most 2 · (max degree) - 1
+  // colours. Within a colour the same order, so consecutive slots touch nearby records.
   const size_t n = mass_.size();
   const size_t m = edge_i_.size();
   int32_t max_degree = 0;
   for (size_t i = 0; i < n; ++i) {
     max_degree = std::max(max_degree, node_edge_start_[i + 1] - node_edge_start_[i]);
   }
+  std::vector<std::array<int32_t, 3>> by_slot(m);  // lower slot, upper slot, constraint
+  for (size_t e = 0; e < m; ++e) {
+    const int32_t a = node_slot_[static_cast<size_t>(edge_i_[e])];
+    const int32_t b = node_slot_[static_cast<size_t>(edge_j_[e])];
+    by_slot[e] = {std::min(a, b), std::max(a, b), static_cast<int32_t>(e)};
+  }
+  std::sort(by_slot.begin(), by_slot.end());
   const size_t words = (2 * static_cast<size_t>(max_degree) + 63) / 64;
   std::vector<uint64_t> used(n * words, 0);  // bit c of node i: colour c touches i
-  std::vector<int32_t> colour(m);
+  std::vector<int32_t> colour(m);            // of by_slot[k]
   int32_t num_colours = 0;
-  for (size_t e = 0; e < m; ++e) {
-    const uint64_t* ui = &used[static_cast<size_t>(edge_i_[e]) * words];
-    const uint64_t* uj = &used[static_cast<size_t>(edge_j_[e]) * words];
+  for (size_t k = 0; k < m; ++k) {
+    const auto e = static_cast<size_t>(by_slot[k][2]);
+    uint64_t* ui = &used[static_cast<size_t>(edge_i_[e]) * words];
+    uint64_t* uj = &used[static_cast<size_t>(edge_j_[e]) * words];
     size_t c = 0;
     for (size_t w = 0; w < words; ++w) {
       const uint64_t taken = ui[w] | uj[w];
@@ -399,33 +505,32 @@ void PositionBasedModel::ColourConstraints() {
         break;
       }
     }
-    colour[e] = static_cast<int32_t>(c);
+    colour[k] = static_cast<int32_t>(c);
     num_colours = std::max(num_colours, static_cast<int32_t>(c) + 1);
-    used[static_cast<size_t>(edge_i_[e]) * words + c / 64] |= uint64_t{1} << (c % 64);
-    used[static_cast<size_t>(edge_j_[e]) * words + c / 64] |= uint64_t{1} << (c % 64);
+    ui[c / 64] |= uint64_t{1} << (c % 64);
+    uj[c / 64] |= uint64_t{1} << (c % 64);
   }
-  // Slots by colour, sorted order within a colour (a counting sort).
+  // Slots by colour, in by_slot order within a colour (a counting sort).
   colour_start_.assign(static_cast<size_t>(num_colours) + 1, 0);
-  for (size_t e = 0; e < m; ++e) ++colour_start_[static_cast<size_t>(colour[e]) + 1];
+  for (size_t k = 0; k < m; ++k) ++colour_start_[static_cast<size_t>(colour[k]) + 1];
   for (size_t c = 0; c < static_cast<size_t>(num_colours); ++c) {
     colour_start_[c + 1] += colour_start_[c];
   }
   std::vector<int32_t> fill(colour_start_.begin(), colour_start_.end() - 1);
   sweep_edge_.resize(m);
-  for (size_t e = 0; e < m; ++e) {
-    sweep_edge_[static_cast<size_t>(fill[static_cast<size_t>(colour[e])]++)] =
-        static_cast<int32_t>(e);
+  for (size_t k = 0; k < m; ++k) {
+    sweep_edge_[static_cast<size_t>(fill[static_cast<size_t>(colour[k])]++)] = by_slot[k][2];
   }
   const bool xpbd = parameters_.mode == PositionBasedMode::kXpbd;
-  sweep_i3_.resize(m);
-  sweep_j3_.resize(m);
+  sweep_i4_.resize(m);
+  sweep_j4_.resize(m);
   sweep_rest_.resize(m);
   sweep_inv_rest_.resize(m);
   sweep_compliance_.resize(m);
   for (size_t s = 0; s < m; ++s) {
     const auto e = static_cast<size_t>(sweep_edge_[s]);
-    sweep_i3_[s] = 3 * edge_i_[e];
-    sweep_j3_[s] = 3 * edge_j_[e];
+    sweep_i4_[s] = 4 * node_slot_[static_cast<size_t>(edge_i_[e])];
+    sweep_j4_[s] = 4 * node_slot_[static_cast<size_t>(edge_j_[e])];
     sweep_rest_[s] = rest_length_[e];
     sweep_inv_rest_[s] = 1.0 / rest_length_[e];
     sweep_compliance_[s] = xpbd ? edge_compliance_[e] : 0.0;
@@ -436,23 +541,26 @@ std::unique_ptr<TissueState> PositionBasedModel::MakeState() const {
   auto state = std::make_unique<PositionBasedState>();
   InitialiseState(rest_, state.get());
   const Eigen::Index n = rest_.cols();
+  const auto nn = static_cast<size_t>(n);
   const auto m = static_cast<size_t>(num_constraints());
-  state->start = rest_;
-  state->predicted = rest_;
-  state->impulse = mesh::Points::Zero(3, n);
-  state->inverse_mass = inverse_mass_;
+  state->node_buffer.assign(4 * nn + 8, 0.0);
+  void* first = state->node_buffer.data();
+  size_t space = state->node_buffer.size() * sizeof(double);
+  std::align(64, 4 * nn * sizeof(double), first, space);
+  state->node_offset = static_cast<size_t>(static_cast<double*>(first) - state->node_buffer.data());
+  state->predicted.assign(4 * nn, 0.0);
+  state->impulse.assign(4 * nn, 0.0);
+  state->inverse_mass.assign(nn, 0.0);
   state->lambda.assign(m, 0.0);
   state->good_lambda_.assign(m, 0.0);
-  state->sweep_w1.assign(m, 0.0);
-  state->sweep_w2.assign(m, 0.0);
   state->sweep_alpha.assign(m, 0.0);
   state->sweep_gain.assign(m, 0.0);
-  state->prepared_w.assign(static_cast<size_t>(n), 0.0);
+  state->prepared_w.assign(nn, 0.0);
   state->prepared_dt = 0.0;
-  state->attach_stiffness.assign(static_cast<size_t>(n), 0.0);
+  state->attach_stiffness.assign(nn, 0.0);
   state->attach_weighted_target = mesh::Points::Zero(3, n);
   state->attach_lambda = mesh::Points::Zero(3, n);
-  state->attached_nodes.assign(static_cast<size_t>(n), 0);
+  state->attached_nodes.assign(nn, 0);
   if (volume_ != nullptr) state->volume_forces = mesh::Points::Zero(3, n);
   return state;
 }
@@ -474,14 +582,14 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   const double dt = inputs.dt;
   const double dt2 = dt * dt;
   const auto n = static_cast<size_t>(rest_.cols());
-  mesh::Points& x = state->positions;
-  std::vector<double>& w = state->inverse_mass;
-  state->start = x;
-  std::copy(inverse_mass_.begin(), inverse_mass_.end(), w.begin());
+  mesh::Points& x = state->positions;  // the start of the step until the copy-out
+  double* __restrict nodes = state->nodes();
+  double* __restrict w = state->inverse_mass.data();
 
   // Prediction, seed 004 eq. 1: x' = 2x - x* + a Δt² = x + Δt v + Δt² (g + f_ext/m), with
-  // v = (x - x*)/Δt kept as the state's velocity. Massless nodes do not move. The volume
-  // reaction (seed 004) joins f_ext, evaluated at the start of the step.
+  // v = (x - x*)/Δt kept as the state's velocity, written into the internal records. Massless
+  // nodes do not move. The volume reaction (seed 004) joins f_ext, evaluated at the start of the
+  // step.
   const double* __restrict pf =
       inputs.external_forces != nullptr ? inputs.external_forces->data() : nullptr;
   if (volume_ != nullptr) {
@@ -490,32 +598,48 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
     if (pf != nullptr) state->volume_forces += *inputs.external_forces;
     pf = state->volume_forces.data();
   }
-  double* __restrict px = x.data();
+  const double* __restrict px = x.data();
   const double* __restrict pv = state->velocities.data();
-  const Vector3d& g = inputs.gravity;
-  for (size_t i = 0; i < n; ++i) {
-    const double wi = w[i];
-    if (!(wi > 0.0)) continue;
-    for (size_t k = 0; k < 3; ++k) {
-      const double a = pf != nullptr ? g[static_cast<Eigen::Index>(k)] + wi * pf[3 * i + k]
-                                     : g[static_cast<Eigen::Index>(k)];
-      px[3 * i + k] += dt * pv[3 * i + k] + dt2 * a;
+  const std::array<double, 3> g = {inputs.gravity.x(), inputs.gravity.y(), inputs.gravity.z()};
+  // One loop per case, so that the test for external forces stays out of the loop.
+  const auto predict = [&](auto forces) {
+    for (size_t p = 0; p < n; ++p) {
+      const auto i = static_cast<size_t>(node_order_[p]);
+      const double wi = inverse_mass_[i];
+      double* record = nodes + 4 * p;
+      for (size_t k = 0; k < 3; ++k) {
+        double a = g[k];
+        if constexpr (decltype(forces)::value) a += wi * pf[3 * i + k];
+        record[k] = wi > 0.0 ? px[3 * i + k] + (dt * pv[3 * i + k] + dt2 * a) : px[3 * i + k];
+      }
+      record[3] = wi;
+      w[p] = wi;
     }
+  };
+  if (pf != nullptr) {
+    predict(std::true_type{});
+  } else {
+    predict(std::false_type{});
   }
   // Fixed nodes stay where they were; prescribed nodes go to their targets. Both get inverse
   // mass 0, so the projections never move them.
   for (const int32_t node : inputs.fixed_nodes) {
-    x.col(node) = state->start.col(node);
-    w[static_cast<size_t>(node)] = 0.0;
+    const auto p = static_cast<size_t>(node_slot_[static_cast<size_t>(node)]);
+    for (size_t k = 0; k < 3; ++k) nodes[4 * p + k] = px[3 * static_cast<size_t>(node) + k];
+    nodes[4 * p + 3] = 0.0;
+    w[p] = 0.0;
   }
-  for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
-    const int32_t node = inputs.prescribed_nodes[k];
-    x.col(node) = inputs.prescribed_positions->col(static_cast<Eigen::Index>(k));
-    w[static_cast<size_t>(node)] = 0.0;
+  for (size_t q = 0; q < inputs.prescribed_nodes.size(); ++q) {
+    const int32_t node = inputs.prescribed_nodes[q];
+    const auto p = static_cast<size_t>(node_slot_[static_cast<size_t>(node)]);
+    const double* target = inputs.prescribed_positions->col(static_cast<Eigen::Index>(q)).data();
+    for (size_t k = 0; k < 3; ++k) nodes[4 * p + k] = target[k];
+    nodes[4 * p + 3] = 0.0;
+    w[p] = 0.0;
   }
   const bool xpbd = parameters_.mode == PositionBasedMode::kXpbd;
   const bool primal_correction = xpbd && parameters_.primal_correction;
-  if (primal_correction) state->predicted = x;
+  if (primal_correction) std::copy(nodes, nodes + 4 * n, state->predicted.begin());
   // Attachments, merged per node into one compliant constraint x - t̄ = 0 with compliance 1/K.
   state->num_attached = 0;
   for (const Attachment& a : inputs.attachments) {
@@ -534,28 +658,26 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   // prescribed nodes), so most steps reuse the last ones.
   const size_t m = sweep_edge_.size();
   const double inverse_dt2 = 1.0 / dt2;
-  if (!(dt == state->prepared_dt) || !std::equal(w.begin(), w.end(), state->prepared_w.begin())) {
+  if (!(dt == state->prepared_dt) || !std::equal(w, w + n, state->prepared_w.begin())) {
     const double k_seed = parameters_.stiffness;
     for (size_t s = 0; s < m; ++s) {
-      const double w1 = w[static_cast<size_t>(sweep_i3_[s] / 3)];
-      const double w2 = w[static_cast<size_t>(sweep_j3_[s] / 3)];
+      const double w1 = w[static_cast<size_t>(sweep_i4_[s] / 4)];
+      const double w2 = w[static_cast<size_t>(sweep_j4_[s] / 4)];
       const double alpha = sweep_compliance_[s] * inverse_dt2;  // α̃, 0 in seed mode
       const double w_sum = w1 + w2;
-      state->sweep_w1[s] = w1;
-      state->sweep_w2[s] = w2;
       state->sweep_alpha[s] = alpha;
       // A constraint between two immovable nodes is left alone (its λ stays 0).
       state->sweep_gain[s] = !(w_sum > 0.0) ? 0.0 : xpbd ? 1.0 / (w_sum + alpha) : k_seed / w_sum;
     }
-    std::copy(w.begin(), w.end(), state->prepared_w.begin());
+    std::copy(w, w + n, state->prepared_w.begin());
     state->prepared_dt = dt;
   }
 
   std::fill(state->lambda.begin(), state->lambda.end(), 0.0);
-  const SweepArrays arrays{
-      sweep_i3_.data(),          sweep_j3_.data(),         sweep_rest_.data(),
-      sweep_inv_rest_.data(),    state->sweep_w1.data(),   state->sweep_w2.data(),
-      state->sweep_alpha.data(), state->sweep_gain.data(), state->lambda.data()};
+  const SweepArrays arrays{sweep_i4_.data(),          sweep_j4_.data(),
+                           sweep_rest_.data(),        sweep_inv_rest_.data(),
+                           state->sweep_alpha.data(), state->sweep_gain.data(),
+                           state->lambda.data()};
   const size_t num_colours = colour_start_.size() - 1;
   int iteration = 0;
   double residual = 0.0;  // computed only when a tolerance asks for it
@@ -571,27 +693,29 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
       double worst = 0.0;
 #ifdef SOMASIM_PBD_AVX512
       if (simd_) {
-        worst = tolerance > 0.0 ? ProjectAvx512<true>(arrays, begin, end, px)
-                                : ProjectAvx512<false>(arrays, begin, end, px);
+        worst = tolerance > 0.0 ? ProjectAvx512<true>(arrays, begin, end, nodes)
+                                : ProjectAvx512<false>(arrays, begin, end, nodes);
         residual = std::max(residual, worst);
         continue;
       }
 #endif
-      worst = tolerance > 0.0 ? ProjectScalar<true>(arrays, begin, end, px)
-                              : ProjectScalar<false>(arrays, begin, end, px);
+      worst = tolerance > 0.0 ? ProjectScalar<true>(arrays, begin, end, nodes)
+                              : ProjectScalar<false>(arrays, begin, end, nodes);
       residual = std::max(residual, worst);
     }
     // Attachments: the vector constraint C = x - t̄ with compliance 1/K, ∇C = I (XPBD).
     for (size_t k = 0; k < state->num_attached; ++k) {
       const int32_t node = state->attached_nodes[k];
-      const double wi = w[static_cast<size_t>(node)];
+      double* record = nodes + 4 * node_slot_[static_cast<size_t>(node)];
+      const double wi = record[3];
       if (!(wi > 0.0)) continue;
       const double stiffness = state->attach_stiffness[static_cast<size_t>(node)];
       const double alpha = inverse_dt2 / stiffness;
-      const Vector3d c = x.col(node) - state->attach_weighted_target.col(node) / stiffness;
+      Eigen::Map<Vector3d> xn(record);
+      const Vector3d c = xn - state->attach_weighted_target.col(node) / stiffness;
       const Vector3d dlambda = (-c - alpha * state->attach_lambda.col(node)) / (wi + alpha);
       state->attach_lambda.col(node) += dlambda;
-      x.col(node) += wi * dlambda;
+      xn += wi * dlambda;
     }
     // Further constraints of the whole body (e.g. a volume term) are projected here, once per
     // sweep, after the distance constraints and attachments.
@@ -601,15 +725,15 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
       // Macklin et al. §4). Re-anchoring x = x̃ + M⁻¹ (Σ_e ∇C_e(x) λ_e + λ_attach) makes a
       // converged step an exact backward-Euler step, whose rest state is the static solution
       // of springs 1/compliance, whatever Δt or the sweep count.
-      state->impulse.setZero();
+      std::fill(state->impulse.begin(), state->impulse.end(), 0.0);
       double* __restrict impulse = state->impulse.data();
       const double* __restrict lambda = state->lambda.data();
       for (size_t s = 0; s < m; ++s) {
-        const auto i = static_cast<size_t>(sweep_i3_[s]);
-        const auto j = static_cast<size_t>(sweep_j3_[s]);
-        const double dx = px[j] - px[i];
-        const double dy = px[j + 1] - px[i + 1];
-        const double dz = px[j + 2] - px[i + 2];
+        const auto i = static_cast<size_t>(sweep_i4_[s]);
+        const auto j = static_cast<size_t>(sweep_j4_[s]);
+        const double dx = nodes[j] - nodes[i];
+        const double dy = nodes[j + 1] - nodes[i + 1];
+        const double dz = nodes[j + 2] - nodes[i + 2];
         const double length = std::sqrt(dx * dx + dy * dy + dz * dz);
         if (!(length > 0.0)) continue;
         const double f = lambda[s] / length;  // ∇_{x_j} C λ = f d
@@ -622,12 +746,15 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
       }
       for (size_t k = 0; k < state->num_attached; ++k) {
         const int32_t node = state->attached_nodes[k];
-        state->impulse.col(node) += state->attach_lambda.col(node);
+        const auto p = static_cast<size_t>(node_slot_[static_cast<size_t>(node)]);
+        for (size_t d = 0; d < 3; ++d) {
+          impulse[4 * p + d] += state->attach_lambda(static_cast<Eigen::Index>(d), node);
+        }
       }
       const double* __restrict predicted = state->predicted.data();
-      for (size_t i = 0; i < n; ++i) {
+      for (size_t p = 0; p < n; ++p) {
         for (size_t k = 0; k < 3; ++k) {
-          px[3 * i + k] = predicted[3 * i + k] + w[i] * impulse[3 * i + k];
+          nodes[4 * p + k] = predicted[4 * p + k] + w[p] * impulse[4 * p + k];
         }
       }
     }
@@ -639,8 +766,19 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
     state->attach_stiffness[static_cast<size_t>(state->attached_nodes[k])] = 0.0;
   }
 
-  // Velocities consistent with the Verlet step: v = (x_new - x)/Δt (fixed nodes: 0).
-  state->velocities = (x - state->start) * (1.0 / dt);
+  // Back to the public order, with velocities consistent with the Verlet step:
+  // v = (x_new - x)/Δt (fixed nodes: 0).
+  const double inverse_dt = 1.0 / dt;
+  double* __restrict out_x = x.data();
+  double* __restrict out_v = state->velocities.data();
+  for (size_t p = 0; p < n; ++p) {
+    const auto i = static_cast<size_t>(node_order_[p]);
+    for (size_t k = 0; k < 3; ++k) {
+      const double updated = nodes[4 * p + k];
+      out_v[3 * i + k] = (updated - out_x[3 * i + k]) * inverse_dt;
+      out_x[3 * i + k] = updated;
+    }
+  }
   state->last_dt = dt;
 }
 
@@ -648,17 +786,13 @@ double PositionBasedModel::LastConstraintResidual(const TissueState& base) const
   const auto& state = static_cast<const PositionBasedState&>(base);
   const bool xpbd = parameters_.mode == PositionBasedMode::kXpbd;
   const double inverse_dt2 = state.last_dt > 0.0 ? 1.0 / (state.last_dt * state.last_dt) : 0.0;
-  const double* x = state.positions.data();
   double worst = 0.0;
   for (size_t s = 0; s < sweep_edge_.size(); ++s) {
-    const auto i = static_cast<size_t>(sweep_i3_[s]);
-    const auto j = static_cast<size_t>(sweep_j3_[s]);
-    const double dx = x[j] - x[i];
-    const double dy = x[j + 1] - x[i + 1];
-    const double dz = x[j + 2] - x[i + 2];
-    const double c = std::sqrt(dx * dx + dy * dy + dz * dz) - sweep_rest_[s];
-    // λ is in sweep order, like the sweep arrays.
-    const double h = xpbd ? c + sweep_compliance_[s] * inverse_dt2 * state.lambda[s] : c;
+    const auto e = static_cast<size_t>(sweep_edge_[s]);
+    const double c =
+        (state.positions.col(edge_j_[e]) - state.positions.col(edge_i_[e])).norm() - sweep_rest_[s];
+    // λ (of the last accepted step) is in sweep order, like the sweep arrays.
+    const double h = xpbd ? c + sweep_compliance_[s] * inverse_dt2 * state.good_lambda_[s] : c;
     worst = std::max(worst, std::abs(h) * sweep_inv_rest_[s]);
   }
   return worst;

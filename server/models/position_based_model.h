@@ -124,6 +124,8 @@ class PositionBasedModel final : public TissueModel {
              const PositionBasedParameters& parameters);
   // k_eff of constraint e [N/m] for a step of dt (see LocalStiffness).
   double EffectiveStiffness(size_t e, double dt) const;
+  // The internal node order of the sweeps (node_order_, node_slot_): reverse Cuthill–McKee.
+  void OrderNodes();
   // Greedy colouring of the constraints into sweep order (colour_start_, sweep_*).
   void ColourConstraints();
 
@@ -138,11 +140,15 @@ class PositionBasedModel final : public TissueModel {
   std::vector<double> edge_compliance_;   // [m/N], num_constraints (XPBD)
   std::vector<int32_t> node_edge_start_;  // num_nodes + 1, CSR of constraints per node
   std::vector<int32_t> node_edges_;
+  // The sweeps run on internal records (x, y, z, w) per node in a locality-friendly order (the
+  // public numbering is unchanged): node_order_[p] is the node of record p, node_slot_ its inverse.
+  std::vector<int32_t> node_order_;  // num_nodes
+  std::vector<int32_t> node_slot_;   // num_nodes
   // The sweep: constraints in colour order, num_constraints each (see colour_starts()).
   std::vector<int32_t> colour_start_;     // num_colours + 1
   std::vector<int32_t> sweep_edge_;       // constraint index of each slot
-  std::vector<int32_t> sweep_i3_;         // 3 i: offset of x_i in the 3 × n positions
-  std::vector<int32_t> sweep_j3_;         // 3 j
+  std::vector<int32_t> sweep_i4_;         // 4 node_slot_[i]: offset of i's record
+  std::vector<int32_t> sweep_j4_;         // 4 node_slot_[j]
   std::vector<double> sweep_rest_;        // a [m]
   std::vector<double> sweep_inv_rest_;    // 1/a [1/m]
   std::vector<double> sweep_compliance_;  // [m/N] (XPBD), 0 in seed mode
