@@ -384,10 +384,11 @@ std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
     state->spring_transverse.assign(static_cast<size_t>(num_springs()), 0.0);
     state->constrained.assign(static_cast<size_t>(n), 0);
     for (mesh::Points* v : {&state->rhs, &state->dv, &state->residual, &state->preconditioned,
-                            &state->search, &state->product}) {
+                            &state->search, &state->product, &state->preconditioned_product}) {
       *v = mesh::Points::Zero(3, n);
     }
     state->inverse_diagonal = Eigen::Matrix<double, 9, Eigen::Dynamic>::Zero(9, n);
+    state->diagonal = Eigen::Matrix<double, 6, Eigen::Dynamic>::Zero(6, n);
   } else {
     state->pending = mesh::Points::Zero(3, n);
   }
@@ -465,6 +466,9 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   double* const x = state->positions.data();
   double* const v = state->velocities.data();
   const double gx = inputs.gravity.x(), gy = inputs.gravity.y(), gz = inputs.gravity.z();
+  // SavesGoodStateItself: each node's x and v go to the last-good buffers before they change.
+  double* const good_x = LastGoodPositions(state);
+  double* const good_v = LastGoodVelocities(state);
   const SpringArrays springs{x,
                              v,
                              static_cast<size_t>(state->positions.size()),
@@ -475,8 +479,8 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
                              damping_.data()};
   SpringPass(springs, first_node_start_.data(), static_cast<size_t>(rest_.cols()), spring_j_.size(),
              CpuHasAvx512(), pending,
-             [pending, external, inverse_mass, x, v, dt, gx, gy, gz](size_t node, double fx,
-                                                                     double fy, double fz) {
+             [pending, external, inverse_mass, x, v, good_x, good_v, dt, gx, gy, gz](
+                 size_t node, double fx, double fy, double fz) {
                const size_t i = 3 * node;
                fx += pending[i];
                fy += pending[i + 1];
@@ -489,12 +493,23 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
                }
                const double w = inverse_mass[node];
                const double moves = w > 0.0 ? 1.0 : 0.0;
-               v[i] += dt * (w * fx + moves * gx);
-               v[i + 1] += dt * (w * fy + moves * gy);
-               v[i + 2] += dt * (w * fz + moves * gz);
-               x[i] += dt * v[i];
-               x[i + 1] += dt * v[i + 1];
-               x[i + 2] += dt * v[i + 2];
+               const double vx = v[i], vy = v[i + 1], vz = v[i + 2];
+               const double px = x[i], py = x[i + 1], pz = x[i + 2];
+               good_v[i] = vx;
+               good_v[i + 1] = vy;
+               good_v[i + 2] = vz;
+               good_x[i] = px;
+               good_x[i + 1] = py;
+               good_x[i + 2] = pz;
+               const double nvx = vx + dt * (w * fx + moves * gx);
+               const double nvy = vy + dt * (w * fy + moves * gy);
+               const double nvz = vz + dt * (w * fz + moves * gz);
+               v[i] = nvx;
+               v[i + 1] = nvy;
+               v[i + 2] = nvz;
+               x[i] = px + dt * nvx;
+               x[i + 1] = py + dt * nvy;
+               x[i + 2] = pz + dt * nvz;
              });
   ApplyFixedAndPrescribed(inputs, state);
 }

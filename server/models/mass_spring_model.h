@@ -95,6 +95,10 @@ class MassSpringModel final : public TissueModel {
 
  protected:
   void Advance(const StepInputs& inputs, TissueState* state) const override;
+  // The explicit step saves the state it starts from during its pass over the nodes.
+  bool SavesGoodStateItself() const override {
+    return integrator_ == MassSpringIntegrator::kSymplecticEuler;
+  }
 
  private:
   friend class MassSpringImplicitStep;

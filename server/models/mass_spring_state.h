@@ -25,6 +25,9 @@ class MassSpringState final : public TissueState {
   std::vector<uint8_t> constrained;       // fixed or prescribed this step, num_nodes
   mesh::Points rhs, dv, residual, preconditioned, search, product;  // 3 × num_nodes each
   Eigen::Matrix<double, 9, Eigen::Dynamic> inverse_diagonal;        // 3×3 blocks, num_nodes
+  // The diagonal blocks of A on massless nodes (xx, xy, xz, yy, yz, zz; zero when constrained).
+  Eigen::Matrix<double, 6, Eigen::Dynamic> diagonal;
+  mesh::Points preconditioned_product;  // A z, 3 × num_nodes
 };
 
 }  // namespace somasim::models

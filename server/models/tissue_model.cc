@@ -125,8 +125,10 @@ StepStatus TissueModel::Step(const StepInputs& inputs, TissueState* state) const
     ++state->counters.rejected_steps;
     return status;
   }
-  state->last_good_positions_ = state->positions;
-  state->last_good_velocities_ = state->velocities;
+  if (!SavesGoodStateItself()) {
+    state->last_good_positions_ = state->positions;
+    state->last_good_velocities_ = state->velocities;
+  }
   state->SaveGood();
   state->time += inputs.dt;
   ++state->counters.steps;

@@ -105,6 +105,20 @@ class TissueModel {
   // The model's own integration of one step; inputs are already checked.
   virtual void Advance(const StepInputs& inputs, TissueState* state) const = 0;
   void set_speed_limit(double limit) { speed_limit_ = limit; }
+  // True when Advance itself writes the positions and velocities it starts from into the
+  // state's last-good buffers (LastGoodPositions/Velocities below) before changing them, in its
+  // own pass over the nodes: Step then skips its copy of the accepted state, and a rejected step
+  // restores the state the step started from. (That is the last accepted state unless the
+  // caller edited the state in between, in which case it is the edited one.) The last-good
+  // buffers then lag one step behind between steps, which nothing outside Step reads.
+  virtual bool SavesGoodStateItself() const { return false; }
+  // The last-good buffers of `state` (3 × num_nodes each), for a model that saves them itself.
+  static double* LastGoodPositions(TissueState* state) {
+    return state->last_good_positions_.data();
+  }
+  static double* LastGoodVelocities(TissueState* state) {
+    return state->last_good_velocities_.data();
+  }
   // Sizes the base-class buffers of a freshly made state and fills them with `rest`.
   static void InitialiseState(const mesh::Points& rest, TissueState* state);
 

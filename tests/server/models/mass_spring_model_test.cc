@@ -345,6 +345,42 @@ TEST(MassSpringModel, DivergenceIsDetectedRolledBackAndCounted) {
   EXPECT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
 }
 
+TEST(MassSpringModel, RejectedExplicitStepRestoresTheStateExactly) {
+  // The explicit step saves the state it starts from during its own pass (SavesGoodStateItself):
+  // a rejected step must restore it bit for bit and leave nothing behind, so the steps after it
+  // are exactly those of a state that never saw it, also after two rejections in a row.
+  const auto model = OrganModel("liver288", 0.1);
+  const auto state = model->MakeState();
+  const auto twin = model->MakeState();
+  Perturb(state.get(), 0.002, 7);
+  twin->positions = state->positions;
+  StepInputs inputs;
+  inputs.dt = SafeStep(*model, 0.3);
+  inputs.gravity = Vector3d(0.0, 0.0, -9.81);
+  for (int step = 0; step < 3; ++step) {
+    ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+    ASSERT_EQ(model->Step(inputs, twin.get()), StepStatus::kOk);
+  }
+  const mesh::Points positions = state->positions;
+  const mesh::Points velocities = state->velocities;
+  StepInputs blow_up = inputs;
+  const mesh::Points blow = PointLoad(model->num_nodes(), 10, Vector3d(0.0, 0.0, 1e9));  // [N]
+  blow_up.external_forces = &blow;
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    EXPECT_EQ(model->Step(blow_up, state.get()), StepStatus::kRejectedTooFast);
+    EXPECT_TRUE((state->positions.array() == positions.array()).all());
+    EXPECT_TRUE((state->velocities.array() == velocities.array()).all());
+  }
+  EXPECT_EQ(state->counters.rejected_steps, 2);
+  for (int step = 0; step < 3; ++step) {
+    ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+    ASSERT_EQ(model->Step(inputs, twin.get()), StepStatus::kOk);
+  }
+  EXPECT_TRUE((state->positions.array() == twin->positions.array()).all());
+  EXPECT_TRUE((state->velocities.array() == twin->velocities.array()).all());
+  EXPECT_EQ(state->time, twin->time);
+}
+
 TEST(MassSpringModel, StepAllocatesNothing) {
   const auto model = OrganModel("kidney424", 0.1);
   const auto state = model->MakeState();
