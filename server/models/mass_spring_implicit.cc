@@ -52,8 +52,8 @@ class MassSpringImplicitStep {
     double* __restrict diagonal = state->inverse_diagonal.data();
     const int32_t* __restrict spring_j = model.spring_j_.data();
     const double* __restrict rest_length = model.rest_length_.data();
-    const double* __restrict stiffness = model.stiffness_.data();
-    const double* __restrict damping = model.damping_.data();
+    const double* __restrict stiffness = state->stiffness.data();
+    const double* __restrict damping = state->damping.data();
     const int32_t* __restrict first_start = model.first_node_start_.data();
     const auto n = static_cast<size_t>(model.rest_.cols());
     const double dt2 = dt * dt;

@@ -379,6 +379,8 @@ std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
   InitialiseState(rest_, state.get());
   const Eigen::Index n = rest_.cols();
   state->forces = mesh::Points::Zero(3, n);
+  state->stiffness = stiffness_;
+  state->damping = damping_;
   if (integrator_ == MassSpringIntegrator::kImplicitEuler) {
     state->spring_direction = mesh::Points::Zero(3, num_springs());
     state->spring_transverse.assign(static_cast<size_t>(num_springs()), 0.0);
@@ -400,10 +402,11 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   forces->resize(3, rest_.cols());  // a no-op (no allocation) when already sized
   forces->setZero();
   double* const f = forces->data();
+  const auto& ms = static_cast<const MassSpringState&>(state);
   const SpringArrays springs{
       state.positions.data(), state.velocities.data(), static_cast<size_t>(state.positions.size()),
       spring_i_.data(),       spring_j_.data(),        rest_length_.data(),
-      stiffness_.data(),      damping_.data()};
+      ms.stiffness.data(),    ms.damping.data()};
   SpringPass(springs, first_node_start_.data(), static_cast<size_t>(rest_.cols()), spring_j_.size(),
              CpuHasAvx512(), f, [f](size_t node, double fx, double fy, double fz) {
                f[3 * node] += fx;
@@ -475,8 +478,8 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
                              spring_i_.data(),
                              spring_j_.data(),
                              rest_length_.data(),
-                             stiffness_.data(),
-                             damping_.data()};
+                             state->stiffness.data(),
+                             state->damping.data()};
   SpringPass(springs, first_node_start_.data(), static_cast<size_t>(rest_.cols()), spring_j_.size(),
              CpuHasAvx512(), pending,
              [pending, external, inverse_mass, x, v, good_x, good_v, dt, gx, gy, gz](
@@ -517,6 +520,7 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
 Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_t node) const {
   assert(node >= 0 && node < num_nodes());
   // -∂f_i/∂x_i of each incident spring: k [u uᵀ + (1 - l0/l)(I - u uᵀ)] (elastic part).
+  const auto& ms = static_cast<const MassSpringState&>(state);
   Eigen::Matrix3d k_local = Eigen::Matrix3d::Zero();
   for (int32_t e = node_spring_start_[static_cast<size_t>(node)];
        e < node_spring_start_[static_cast<size_t>(node) + 1]; ++e) {
@@ -526,7 +530,7 @@ Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_
     if (!(length > 0.0)) continue;
     const Vector3d u = d / length;
     const Eigen::Matrix3d uu = u * u.transpose();
-    k_local += stiffness_[s] *
+    k_local += ms.stiffness[s] *
                (uu + (1.0 - rest_length_[s] / length) * (Eigen::Matrix3d::Identity() - uu));
   }
   if (anchor_stiffness_ > 0.0 && mass_[static_cast<size_t>(node)] > 0.0) {
@@ -537,12 +541,13 @@ Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_
 
 EnergyReport MassSpringModel::Energy(const TissueState& state,
                                      const Eigen::Vector3d& gravity) const {
+  const auto& ms = static_cast<const MassSpringState&>(state);
   EnergyReport report;
   for (size_t s = 0; s < spring_i_.size(); ++s) {
     const double stretch =
         (state.positions.col(spring_j_[s]) - state.positions.col(spring_i_[s])).norm() -
         rest_length_[s];
-    report.elastic += 0.5 * stiffness_[s] * stretch * stretch;
+    report.elastic += 0.5 * ms.stiffness[s] * stretch * stretch;
   }
   for (const int32_t node : anchor_nodes_) {  // seed 001: ½ k_s |x - x0|²
     report.elastic +=
@@ -555,6 +560,22 @@ EnergyReport MassSpringModel::Energy(const TissueState& state,
     report.momentum += m * state.velocities.col(i);
   }
   return report;
+}
+
+int32_t MassSpringModel::Cut(const SweptQuad& sweep, TissueState* base) const {
+  auto* state = static_cast<MassSpringState*>(base);
+  if (!sweep.AllFinite()) return 0;
+  int32_t removed = 0;
+  for (size_t s = 0; s < spring_i_.size(); ++s) {
+    if (state->stiffness[s] == 0.0 && state->damping[s] == 0.0) continue;  // already cut
+    if (SegmentCrossesSweep(state->positions.col(spring_i_[s]), state->positions.col(spring_j_[s]),
+                            sweep)) {
+      state->stiffness[s] = 0.0;
+      state->damping[s] = 0.0;
+      ++removed;
+    }
+  }
+  return removed;
 }
 
 }  // namespace somasim::models

@@ -85,6 +85,9 @@ class MassSpringModel final : public TissueModel {
   Eigen::Matrix3d LocalStiffness(const TissueState& state, int32_t node) const override;
   void InternalForces(const TissueState& state, mesh::Points* forces) const override;
   EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
+  bool SupportsCutting() const override { return true; }
+  // Removes the springs crossing the sweep (their stiffness and damping become 0 in the state).
+  int32_t Cut(const SweptQuad& sweep, TissueState* state) const override;
 
   const std::vector<double>& masses() const { return mass_; }          // [kg], num_nodes
   const std::vector<double>& stiffness() const { return stiffness_; }  // [N/m], num_springs

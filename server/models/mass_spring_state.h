@@ -16,6 +16,10 @@ namespace somasim::models {
 class MassSpringState final : public TissueState {
  public:
   mesh::Points forces;  // [N], 3 × num_nodes
+  // Each spring's stiffness [N/m] and damping [N s/m] in this state, num_springs: the model's,
+  // or 0 once Cut has removed the spring.
+  std::vector<double> stiffness;
+  std::vector<double> damping;
   // Explicit step only: forces [N] accumulated at nodes whose own turn in the pass has not come
   // yet (3 × num_nodes); zero between steps.
   mesh::Points pending;

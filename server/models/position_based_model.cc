@@ -50,6 +50,7 @@ class PositionBasedState final : public TissueState {
   std::vector<double> prepared_w;  // the w the factors were computed with, internal order
   double prepared_dt = 0.0;        // and the Δt [s] (0: not yet)
   double last_dt = 0.0;            // [s] of the last accepted step, 0 before any
+  std::vector<uint8_t> cut;        // 1 = removed by Cut, num_constraints, constraint order
   // Attachments, merged per node: Σ_a k_a (t_a - x) = K (t̄ - x) with K = Σ k_a,
   // t̄ = Σ k_a t_a / K, projected as one compliant vector constraint (compliance 1/K).
   std::vector<double> attach_stiffness;  // K [N/m], num_nodes, 0 between steps
@@ -555,6 +556,7 @@ std::unique_ptr<TissueState> PositionBasedModel::MakeState() const {
   state->good_lambda_.assign(m, 0.0);
   state->sweep_alpha.assign(m, 0.0);
   state->sweep_gain.assign(m, 0.0);
+  state->cut.assign(m, 0);
   state->prepared_w.assign(nn, 0.0);
   state->prepared_dt = 0.0;
   state->attach_stiffness.assign(nn, 0.0);
@@ -666,8 +668,9 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
       const double alpha = sweep_compliance_[s] * inverse_dt2;  // α̃, 0 in seed mode
       const double w_sum = w1 + w2;
       state->sweep_alpha[s] = alpha;
-      // A constraint between two immovable nodes is left alone (its λ stays 0).
-      state->sweep_gain[s] = !(w_sum > 0.0) ? 0.0 : xpbd ? 1.0 / (w_sum + alpha) : k_seed / w_sum;
+      // A constraint between two immovable nodes, or cut, is left alone (its λ stays 0).
+      const bool inert = !(w_sum > 0.0) || state->cut[static_cast<size_t>(sweep_edge_[s])] != 0;
+      state->sweep_gain[s] = inert ? 0.0 : xpbd ? 1.0 / (w_sum + alpha) : k_seed / w_sum;
     }
     std::copy(w, w + n, state->prepared_w.begin());
     state->prepared_dt = dt;
@@ -789,6 +792,7 @@ double PositionBasedModel::LastConstraintResidual(const TissueState& base) const
   double worst = 0.0;
   for (size_t s = 0; s < sweep_edge_.size(); ++s) {
     const auto e = static_cast<size_t>(sweep_edge_[s]);
+    if (state.cut[e] != 0) continue;
     const double c =
         (state.positions.col(edge_j_[e]) - state.positions.col(edge_i_[e])).norm() - sweep_rest_[s];
     // λ (of the last accepted step) is in sweep order, like the sweep arrays.
@@ -806,6 +810,7 @@ Eigen::Matrix3d PositionBasedModel::LocalStiffness(const TissueState& base, int3
   for (int32_t slot = node_edge_start_[static_cast<size_t>(node)];
        slot < node_edge_start_[static_cast<size_t>(node) + 1]; ++slot) {
     const auto e = static_cast<size_t>(node_edges_[static_cast<size_t>(slot)]);
+    if (state.cut[e] != 0) continue;
     const Vector3d d = state.positions.col(edge_j_[e]) - state.positions.col(edge_i_[e]);
     const double length = d.norm();
     if (!(length > 0.0)) continue;
@@ -823,6 +828,7 @@ void PositionBasedModel::InternalForces(const TissueState& base, mesh::Points* f
   forces->resize(3, rest_.cols());  // a no-op (no allocation) when already sized
   forces->setZero();
   for (size_t e = 0; e < edge_i_.size(); ++e) {
+    if (state.cut[e] != 0) continue;
     const Vector3d d = state.positions.col(edge_j_[e]) - state.positions.col(edge_i_[e]);
     const double length = d.norm();
     if (!(length > 0.0)) continue;
@@ -840,6 +846,7 @@ EnergyReport PositionBasedModel::Energy(const TissueState& base,
   const auto& state = static_cast<const PositionBasedState&>(base);
   EnergyReport report;
   for (size_t e = 0; e < edge_i_.size(); ++e) {
+    if (state.cut[e] != 0) continue;
     const double c = (state.positions.col(edge_j_[e]) - state.positions.col(edge_i_[e])).norm() -
                      rest_length_[e];
     report.elastic += 0.5 * EffectiveStiffness(e, state.last_dt) * c * c;
@@ -852,6 +859,22 @@ EnergyReport PositionBasedModel::Energy(const TissueState& base,
     report.momentum += m * state.velocities.col(i);
   }
   return report;
+}
+
+int32_t PositionBasedModel::Cut(const SweptQuad& sweep, TissueState* base) const {
+  auto* state = static_cast<PositionBasedState*>(base);
+  if (!sweep.AllFinite()) return 0;
+  int32_t removed = 0;
+  for (size_t e = 0; e < edge_i_.size(); ++e) {
+    if (state->cut[e] != 0) continue;
+    if (SegmentCrossesSweep(state->positions.col(edge_i_[e]), state->positions.col(edge_j_[e]),
+                            sweep)) {
+      state->cut[e] = 1;
+      ++removed;
+    }
+  }
+  if (removed > 0) state->prepared_dt = 0.0;  // the sweep factors are recomputed next step
+  return removed;
 }
 
 }  // namespace somasim::models

@@ -89,6 +89,10 @@ class PositionBasedModel final : public TissueModel {
   void InternalForces(const TissueState& state, mesh::Points* forces) const override;
   // elastic = Σ ½ k_eff C², C = |x_j - x_i| - a, plus the volume term's energy.
   EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
+  bool SupportsCutting() const override { return true; }
+  // Removes the distance constraints crossing the sweep (kept in the state; the volume reaction's
+  // rings are not changed).
+  int32_t Cut(const SweptQuad& sweep, TissueState* state) const override;
 
   // The largest relative violation after the last step: max_e |C_e + α̃ λ_e| / a_e in XPBD mode
   // (the compliant constraint equation; α̃ λ = 0 for rigid links), max_e |C_e| / a_e in seed mode.

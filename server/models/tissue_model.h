@@ -14,6 +14,7 @@
 #include <span>
 
 #include "common/mesh/mesh_types.h"
+#include "server/models/cut_geometry.h"
 
 namespace somasim::models {
 
@@ -98,6 +99,12 @@ class TissueModel {
   virtual EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const = 0;
   // Whether Cut() can remove elements crossing a swept surface (the cutting issue).
   virtual bool SupportsCutting() const { return false; }
+  // The cut hook (SPEC §5.3, the cutting issue calls it between steps): removes the springs or
+  // constraints whose segment, at the state's current positions, crosses the blade's swept quad,
+  // and returns how many it removed. The removal is part of the state (a snapshot or replay
+  // carries it; a rejected step does not undo it); the model stays read-only. Models that do not
+  // support cutting remove nothing and return 0. Not for the 1 kHz path: O(springs).
+  virtual int32_t Cut(const SweptQuad& /*sweep*/, TissueState* /*state*/) const { return 0; }
   // Nodes faster than this [m/s] mark a step as diverged (tissue never moves like that).
   double speed_limit() const { return speed_limit_; }
 
