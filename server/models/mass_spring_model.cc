@@ -553,12 +553,7 @@ EnergyReport MassSpringModel::Energy(const TissueState& state,
     report.elastic +=
         0.5 * anchor_stiffness_ * (state.positions.col(node) - rest_.col(node)).squaredNorm();
   }
-  for (Eigen::Index i = 0; i < rest_.cols(); ++i) {
-    const double m = mass_[static_cast<size_t>(i)];
-    report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
-    report.gravity -= m * gravity.dot(state.positions.col(i));
-    report.momentum += m * state.velocities.col(i);
-  }
+  AddKineticAndGravity(mass_, state, gravity, &report);
   return report;
 }
 

@@ -114,4 +114,14 @@ void ApplyFixedAndPrescribed(const StepInputs& inputs, TissueState* state) {
   }
 }
 
+void AddKineticAndGravity(const std::vector<double>& masses, const TissueState& state,
+                          const Eigen::Vector3d& gravity, EnergyReport* report) {
+  for (Eigen::Index i = 0; i < state.positions.cols(); ++i) {
+    const double m = masses[static_cast<size_t>(i)];
+    report->kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
+    report->gravity -= m * gravity.dot(state.positions.col(i));
+    report->momentum += m * state.velocities.col(i);
+  }
+}
+
 }  // namespace somasim::models

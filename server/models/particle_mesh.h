@@ -32,6 +32,11 @@ MeshEdges SurfaceEdges(const mesh::SurfaceMesh& surface, double thickness, const
 // finite.
 void CheckFinitePoints(const mesh::Points& points, const char* model);
 
+// report->kinetic += ½ Σ m |v|², report->gravity -= Σ m g·x, report->momentum += Σ m v over the
+// state's nodes (masses [kg], one per node).
+void AddKineticAndGravity(const std::vector<double>& masses, const TissueState& state,
+                          const Eigen::Vector3d& gravity, EnergyReport* report);
+
 // After an explicit update moved every node by dt·v: fixed nodes go back and stop; prescribed
 // nodes move to their targets with the velocity that takes them there in dt.
 void ApplyFixedAndPrescribed(const StepInputs& inputs, TissueState* state);

@@ -852,12 +852,7 @@ EnergyReport PositionBasedModel::Energy(const TissueState& base,
     report.elastic += 0.5 * EffectiveStiffness(e, state.last_dt) * c * c;
   }
   if (volume_ != nullptr) report.elastic += volume_->Energy(state.positions);
-  for (Eigen::Index i = 0; i < rest_.cols(); ++i) {
-    const double m = mass_[static_cast<size_t>(i)];
-    report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
-    report.gravity -= m * gravity.dot(state.positions.col(i));
-    report.momentum += m * state.velocities.col(i);
-  }
+  AddKineticAndGravity(mass_, state, gravity, &report);
   return report;
 }
 
