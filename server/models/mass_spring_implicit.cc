@@ -298,6 +298,21 @@ void AddAttachments(const StepInputs& inputs, double stiffness_coeff, const doub
 
 }  // namespace
 
+void MassSpringModel::BuildImplicitData() {}
+
+void MassSpringModel::SizeImplicitScratch(MassSpringState* state) const {
+  const Eigen::Index n = rest_.cols();
+  state->spring_direction = mesh::Points::Zero(3, num_springs());
+  state->spring_transverse.assign(static_cast<size_t>(num_springs()), 0.0);
+  state->constrained.assign(static_cast<size_t>(n), 0);
+  for (mesh::Points* v : {&state->rhs, &state->dv, &state->residual, &state->preconditioned,
+                          &state->search, &state->product, &state->preconditioned_product}) {
+    *v = mesh::Points::Zero(3, n);
+  }
+  state->inverse_diagonal = Eigen::Matrix<double, 9, Eigen::Dynamic>::Zero(9, n);
+  state->diagonal = Eigen::Matrix<double, 6, Eigen::Dynamic>::Zero(6, n);
+}
+
 void MassSpringModel::AdvanceImplicit(const StepInputs& inputs, TissueState* base) const {
   auto* state = static_cast<MassSpringState*>(base);
   const double dt = inputs.dt;

@@ -372,6 +372,7 @@ void MassSpringModel::Build(const mesh::Points& rest,
   integrator_ = p.integrator;
   cg_tolerance_ = p.cg_tolerance;
   cg_max_iterations_ = p.cg_max_iterations;
+  if (integrator_ == MassSpringIntegrator::kImplicitEuler) BuildImplicitData();
 }
 
 std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
@@ -382,15 +383,7 @@ std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
   state->stiffness = stiffness_;
   state->damping = damping_;
   if (integrator_ == MassSpringIntegrator::kImplicitEuler) {
-    state->spring_direction = mesh::Points::Zero(3, num_springs());
-    state->spring_transverse.assign(static_cast<size_t>(num_springs()), 0.0);
-    state->constrained.assign(static_cast<size_t>(n), 0);
-    for (mesh::Points* v : {&state->rhs, &state->dv, &state->residual, &state->preconditioned,
-                            &state->search, &state->product, &state->preconditioned_product}) {
-      *v = mesh::Points::Zero(3, n);
-    }
-    state->inverse_diagonal = Eigen::Matrix<double, 9, Eigen::Dynamic>::Zero(9, n);
-    state->diagonal = Eigen::Matrix<double, 6, Eigen::Dynamic>::Zero(6, n);
+    SizeImplicitScratch(state.get());
   } else {
     state->pending = mesh::Points::Zero(3, n);
   }

@@ -57,6 +57,8 @@ struct MassSpringParameters {
   double shell_fraction = 0.2;
 };
 
+class MassSpringState;
+
 class MassSpringModel final : public TissueModel {
  public:
   // Throws std::invalid_argument naming the bad parameter or mesh fault (no elements, NaN
@@ -106,6 +108,10 @@ class MassSpringModel final : public TissueModel {
  private:
   friend class MassSpringImplicitStep;
   void AdvanceImplicit(const StepInputs& inputs, TissueState* state) const;
+  // Implicit-step data and scratch (mass_spring_implicit.cc): called at the end of Build and by
+  // MakeState when the integrator is implicit.
+  void BuildImplicitData();
+  void SizeImplicitScratch(MassSpringState* state) const;
   // Adds gravity, external forces and attachments to state forces (after InternalForces).
   void AddExternalForces(const StepInputs& inputs, TissueState* state) const;
   // forces (3 × num_nodes, flat) += k_s (x0 - x) - d_i v on every anchored node.
@@ -132,6 +138,10 @@ class MassSpringModel final : public TissueModel {
   std::vector<int32_t> anchor_nodes_;   // nodes with a zero-rest-length spring to rest
   std::vector<double> anchor_damping_;  // d_i = 2 ζ √(k_s m_i) [N s/m], one per anchored node
   double anchor_stiffness_ = 0.0;       // k_s [N/m]
+  // --- explicit-step data (mass_spring_model.cc) ---
+  // --- end of explicit-step data ---
+  // --- implicit-step data (mass_spring_implicit.cc) ---
+  // --- end of implicit-step data ---
   MassSpringIntegrator integrator_ = MassSpringIntegrator::kSymplecticEuler;
   double cg_tolerance_ = 1e-8;
   int cg_max_iterations_ = 500;

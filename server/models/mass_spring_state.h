@@ -23,6 +23,8 @@ class MassSpringState final : public TissueState {
   // Explicit step only: forces [N] accumulated at nodes whose own turn in the pass has not come
   // yet (3 × num_nodes); zero between steps.
   mesh::Points pending;
+  // --- explicit-step scratch (mass_spring_model.cc) ---
+  // --- end of explicit-step scratch ---
   // Implicit Euler only.
   mesh::Points spring_direction;          // u, 3 × num_springs
   std::vector<double> spring_transverse;  // (1 - l0/l)₊, num_springs
@@ -32,6 +34,8 @@ class MassSpringState final : public TissueState {
   // The diagonal blocks of A on massless nodes (xx, xy, xz, yy, yz, zz; zero when constrained).
   Eigen::Matrix<double, 6, Eigen::Dynamic> diagonal;
   mesh::Points preconditioned_product;  // A z, 3 × num_nodes
+  // --- implicit-step scratch (mass_spring_implicit.cc) ---
+  // --- end of implicit-step scratch ---
 };
 
 }  // namespace somasim::models

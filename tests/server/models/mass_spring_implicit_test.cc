@@ -1,0 +1,4 @@
+// Tests of the implicit mass-spring step's kernels (issue 4 speed work).
+#include <gtest/gtest.h>
+
+#include "server/models/mass_spring_model.h"
