@@ -1,0 +1,75 @@
+// A sparse symmetric matrix of 3×3 blocks on a tetrahedral mesh's node graph (block compressed
+// rows, both blocks ij and ji stored), its pattern fixed when the model is built so that
+// re-assembling it in a step allocates nothing; and conjugate gradients on it, preconditioned by
+// its inverse diagonal blocks, with nodes held by Dirichlet conditions taken out. Pure.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <vector>
+
+#include "common/mesh/mesh_types.h"
+#include "server/models/fem/sparse_cholesky.h"
+
+namespace somasim::models::fem {
+
+class BlockSparseMatrix {
+ public:
+  BlockSparseMatrix() = default;
+  // The pattern: row i holds a block for i and for every node sharing a tetrahedron with i.
+  static BlockSparseMatrix FromTets(const mesh::Tetrahedra& tets, int32_t num_nodes);
+
+  int32_t num_nodes() const { return static_cast<int32_t>(row_start_.size()) - 1; }
+  int32_t num_blocks() const { return static_cast<int32_t>(columns_.size()); }
+  // The block of corners (a, b) of element e: block index element_block(e, a, b).
+  int32_t element_block(int32_t e, int a, int b) const {
+    return element_blocks_[16 * static_cast<size_t>(e) + 4 * static_cast<size_t>(a) +
+                           static_cast<size_t>(b)];
+  }
+  int32_t diagonal_block(int32_t node) const { return diagonal_[static_cast<size_t>(node)]; }
+  // Block k, 3×3 column-major [unit of the matrix].
+  Eigen::Map<Eigen::Matrix3d> block(int32_t k) {
+    return Eigen::Map<Eigen::Matrix3d>(values_.data() + 9 * static_cast<size_t>(k));
+  }
+  Eigen::Map<const Eigen::Matrix3d> block(int32_t k) const {
+    return Eigen::Map<const Eigen::Matrix3d>(values_.data() + 9 * static_cast<size_t>(k));
+  }
+  void SetZero() { std::fill(values_.begin(), values_.end(), 0.0); }
+  // y = A x (3 × num_nodes each, flat). With `constrained` (num_nodes, or null): rows and columns
+  // of constrained nodes are replaced by the identity.
+  void Multiply(const double* x, double* y, const uint8_t* constrained) const;
+  // The matrix restricted to the unconstrained nodes' DOFs as a scalar lower triangle, numbered
+  // by `dof` (3 × num_nodes, -1 where constrained; free DOFs 0..num_dofs-1 in node order).
+  // Allocates: for static solves.
+  LowerCsc ScalarLower(const std::vector<int32_t>& dof, int32_t num_dofs) const;
+
+ private:
+  std::vector<int32_t> row_start_;       // num_nodes + 1
+  std::vector<int32_t> columns_;         // num_blocks, sorted within a row
+  std::vector<int32_t> diagonal_;        // num_nodes: index of block (i, i)
+  std::vector<int32_t> element_blocks_;  // 16 × num_tets
+  std::vector<double> values_;           // 9 × num_blocks
+};
+
+// Scratch for ConjugateGradients, sized once (3 × num_nodes vectors, 9 × num_nodes inverse
+// diagonal blocks).
+struct CgScratch {
+  explicit CgScratch(int32_t num_nodes = 0);
+  std::vector<double> residual, preconditioned, search, product, inverse_diagonal;
+};
+
+struct CgResult {
+  int iterations = 0;
+  double relative_residual = 0.0;  // |b - A x| / |b| at the end (0 when b = 0)
+  bool converged = false;
+};
+
+// Solves A x = b by block-Jacobi preconditioned CG from the initial x (a warm start), with the
+// constrained nodes' x held at their b. Stops at |r| <= tolerance |b| or after max_iterations
+// (with exactly_max_iterations it runs max_iterations whatever the residual, as a benchmark of
+// a fixed budget does). Allocates nothing.
+CgResult ConjugateGradients(const BlockSparseMatrix& a, const uint8_t* constrained, const double* b,
+                            double* x, double tolerance, int max_iterations, CgScratch* scratch,
+                            bool exactly_max_iterations = false);
+
+}  // namespace somasim::models::fem

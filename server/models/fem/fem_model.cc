@@ -1,0 +1,511 @@
+#include "server/models/fem/fem_model.h"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cassert>
+#include <cmath>
+#include <stdexcept>
+#include <string>
+
+#include "server/models/particle_mesh.h"
+
+namespace somasim::models::fem {
+namespace {
+
+using Eigen::Matrix3d;
+using Eigen::Vector3d;
+
+[[noreturn]] void Refuse(const std::string& what) { throw std::invalid_argument("fem: " + what); }
+
+void CheckParameters(const FemParameters& p) {
+  const auto finite_positive = [](double value, const char* what) {
+    if (!(value > 0.0) || !std::isfinite(value)) {
+      Refuse(std::string(what) + " must be a finite value > 0");
+    }
+  };
+  finite_positive(p.youngs_modulus, "youngs_modulus [Pa]");
+  finite_positive(p.density, "density [kg/m^3]");
+  finite_positive(p.speed_limit, "speed_limit [m/s]");
+  finite_positive(p.cg_tolerance, "cg_tolerance");
+  if (!(p.poisson_ratio > -1.0 && p.poisson_ratio < 0.5)) {
+    Refuse("poisson_ratio must lie in (-1, 0.5)");
+  }
+  if (!(p.rayleigh_mass >= 0.0) || !std::isfinite(p.rayleigh_mass) ||
+      !(p.rayleigh_stiffness >= 0.0) || !std::isfinite(p.rayleigh_stiffness)) {
+    Refuse("rayleigh_mass [1/s] and rayleigh_stiffness [s] must be finite and >= 0");
+  }
+  if (!(p.cg_max_iterations > 0)) Refuse("cg_max_iterations must be > 0");
+}
+
+// The skew matrix [w]× with [w]× u = w × u.
+Matrix3d Skew(const Vector3d& w) {
+  Matrix3d m;
+  m << 0.0, -w.z(), w.y(), w.z(), 0.0, -w.x(), -w.y(), w.x(), 0.0;
+  return m;
+}
+
+// The state of a FEM model: positions and velocities plus a step's matrix and scratch, all
+// sized by MakeState.
+class FemState final : public TissueState {
+ public:
+  BlockSparseMatrix matrix;  // A = (1 + dt α) M + (dt² + dt β) K
+  CgScratch cg;
+  std::vector<double> rotations;       // 9 × num_tets, column-major R per element
+  mesh::Points forces, rhs, dv, temp;  // 3 × num_nodes
+  std::vector<uint8_t> constrained;    // num_nodes
+  double last_cg_residual = 0.0;       // |r| / |b| of the last step's solve
+};
+
+}  // namespace
+
+std::unique_ptr<FemModel> FemModel::FromTetMesh(const mesh::TetMesh& mesh,
+                                                const FemParameters& parameters) {
+  CheckParameters(parameters);
+  std::unique_ptr<FemModel> model(new FemModel());
+  model->elements_ = BuildTetElements(mesh, "fem");
+  model->rest_ = mesh.vertices;
+  model->pattern_ = BlockSparseMatrix::FromTets(mesh.tetrahedra, model->num_nodes());
+  model->mass_.resize(model->elements_.node_volume.size());
+  for (size_t i = 0; i < model->mass_.size(); ++i) {
+    model->mass_[i] = parameters.density * model->elements_.node_volume[i];
+  }
+  const double e = parameters.youngs_modulus, nu = parameters.poisson_ratio;
+  model->lambda_ = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
+  model->mu_ = e / (2.0 * (1.0 + nu));
+  model->kind_ = parameters.kind;
+  model->rayleigh_mass_ = parameters.rayleigh_mass;
+  model->rayleigh_stiffness_ = parameters.rayleigh_stiffness;
+  model->cg_tolerance_ = parameters.cg_tolerance;
+  model->cg_max_iterations_ = parameters.cg_max_iterations;
+  model->cg_fixed_iterations_ = parameters.cg_fixed_iterations;
+  model->set_speed_limit(parameters.speed_limit);
+  return model;
+}
+
+std::unique_ptr<TissueState> FemModel::MakeState() const {
+  auto state = std::make_unique<FemState>();
+  InitialiseState(rest_, state.get());
+  state->matrix = pattern_;
+  state->cg = CgScratch(num_nodes());
+  state->rotations.assign(9 * static_cast<size_t>(num_tets()), 0.0);
+  for (size_t e = 0; e < static_cast<size_t>(num_tets()); ++e) {
+    Eigen::Map<Matrix3d>(state->rotations.data() + 9 * e).setIdentity();
+  }
+  for (mesh::Points* p : {&state->forces, &state->rhs, &state->dv, &state->temp}) {
+    *p = mesh::Points::Zero(3, num_nodes());
+  }
+  state->constrained.assign(static_cast<size_t>(num_nodes()), 0);
+  return state;
+}
+
+Matrix3d FemModel::RestBlock(int32_t e, int a, int b) const {
+  const Vector3d ga = elements_.gradients.col(4 * e + a);
+  const Vector3d gb = elements_.gradients.col(4 * e + b);
+  const double v = elements_.volumes[static_cast<size_t>(e)];
+  return v * (lambda_ * ga * gb.transpose() + mu_ * gb * ga.transpose() +
+              mu_ * ga.dot(gb) * Matrix3d::Identity());
+}
+
+void FemModel::ElementStress(const mesh::Points& x, int32_t e, Matrix3d* rotation, Matrix3d* strain,
+                             Matrix3d* stress) const {
+  const Matrix3d h = elements_.DisplacementGradient(x, rest_, e);  // F - I
+  if (kind_ == FemKind::kLinear) {
+    rotation->setIdentity();
+    *strain = 0.5 * (h + h.transpose());
+  } else {
+    *rotation = PolarRotation(Matrix3d::Identity() + h);
+    // S - I = Rᵀ (I + H) - I = (Rᵀ - I) + Rᵀ H, symmetric up to rounding.
+    const Matrix3d s_minus_i =
+        (rotation->transpose() - Matrix3d::Identity()) + rotation->transpose() * h;
+    *strain = 0.5 * (s_minus_i + s_minus_i.transpose());
+  }
+  const Matrix3d sigma = lambda_ * strain->trace() * Matrix3d::Identity() + 2.0 * mu_ * *strain;
+  *stress = *rotation * sigma;
+}
+
+void FemModel::ElasticForces(const mesh::Points& x, double* forces, double* rotations) const {
+  std::fill(forces, forces + 3 * static_cast<size_t>(num_nodes()), 0.0);
+  for (int32_t e = 0; e < num_tets(); ++e) {
+    Matrix3d r, strain, p;
+    ElementStress(x, e, &r, &strain, &p);
+    if (rotations != nullptr) Eigen::Map<Matrix3d>(rotations + 9 * static_cast<size_t>(e)) = r;
+    const double v = elements_.volumes[static_cast<size_t>(e)];
+    for (int a = 0; a < 4; ++a) {
+      const Vector3d fa = -v * (p * elements_.gradients.col(4 * e + a));
+      double* out = forces + 3 * static_cast<size_t>(elements_.tets(a, e));
+      out[0] += fa.x();
+      out[1] += fa.y();
+      out[2] += fa.z();
+    }
+  }
+}
+
+void FemModel::AssembleWarped(const double* rotations, double scale, double mass_scale,
+                              BlockSparseMatrix* matrix) const {
+  matrix->SetZero();
+  for (int32_t e = 0; e < num_tets(); ++e) {
+    const Eigen::Map<const Matrix3d> r(rotations + 9 * static_cast<size_t>(e));
+    for (int a = 0; a < 4; ++a) {
+      for (int b = 0; b < 4; ++b) {
+        matrix->block(matrix->element_block(e, a, b)).noalias() +=
+            scale * (r * RestBlock(e, a, b) * r.transpose());
+      }
+    }
+  }
+  for (int32_t i = 0; i < num_nodes(); ++i) {
+    matrix->block(matrix->diagonal_block(i)).diagonal().array() +=
+        mass_scale * mass_[static_cast<size_t>(i)];
+  }
+}
+
+Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, int32_t e,
+                                                       bool exact) const {
+  Eigen::Matrix<double, 12, 12> k;
+  Matrix3d r, strain, p;
+  ElementStress(x, e, &r, &strain, &p);
+  if (!exact) {
+    for (int a = 0; a < 4; ++a) {
+      for (int b = 0; b < 4; ++b) {
+        k.block<3, 3>(3 * a, 3 * b) = r * RestBlock(e, a, b) * r.transpose();
+      }
+    }
+    return k;
+  }
+  const double v = elements_.volumes[static_cast<size_t>(e)];
+  const Matrix3d sigma = r.transpose() * p;          // σ(ε)
+  const Matrix3d s = strain + Matrix3d::Identity();  // Rᵀ F, symmetrised
+  // dP for dF: linear, dP = σ(sym dF); corotational, P = R σ(S - I) with dR = R [ω]×, where
+  // (tr S I - S) ω = axial(Rᵀ dF - dFᵀ R) and dS = Rᵀ dF - [ω]× S.
+  const Matrix3d t = s.trace() * Matrix3d::Identity() - s;
+  const Eigen::FullPivLU<Matrix3d> t_lu(t);
+  for (int b = 0; b < 4; ++b) {
+    const Vector3d gb = elements_.gradients.col(4 * e + b);
+    for (int c = 0; c < 3; ++c) {
+      const Matrix3d df = Vector3d::Unit(c) * gb.transpose();
+      Matrix3d dp;
+      if (kind_ == FemKind::kLinear) {
+        const Matrix3d de = 0.5 * (df + df.transpose());
+        dp = lambda_ * de.trace() * Matrix3d::Identity() + 2.0 * mu_ * de;
+      } else {
+        const Matrix3d w = r.transpose() * df;
+        const Vector3d axial(w(2, 1) - w(1, 2), w(0, 2) - w(2, 0), w(1, 0) - w(0, 1));
+        const Vector3d omega = t_lu.isInvertible() ? Vector3d(t_lu.solve(axial)) : Vector3d::Zero();
+        const Matrix3d ds = w - Skew(omega) * s;
+        const Matrix3d de = 0.5 * (ds + ds.transpose());
+        const Matrix3d dsigma = lambda_ * de.trace() * Matrix3d::Identity() + 2.0 * mu_ * de;
+        dp = r * (Skew(omega) * sigma + dsigma);
+      }
+      for (int a = 0; a < 4; ++a) {
+        k.block<3, 1>(3 * a, 3 * b + c) = v * (dp * elements_.gradients.col(4 * e + a));
+      }
+    }
+  }
+  return k;
+}
+
+void FemModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
+  forces->resize(3, num_nodes());
+  ElasticForces(state.positions, forces->data(), nullptr);
+  if (rayleigh_mass_ > 0.0 || rayleigh_stiffness_ > 0.0) {
+    // -C v = -α M v - β K v, K the warped stiffness at the state.
+    for (int32_t i = 0; i < num_nodes(); ++i) {
+      forces->col(i) -= rayleigh_mass_ * mass_[static_cast<size_t>(i)] * state.velocities.col(i);
+    }
+    if (rayleigh_stiffness_ > 0.0) {
+      for (int32_t e = 0; e < num_tets(); ++e) {
+        Matrix3d r, strain, p;
+        ElementStress(state.positions, e, &r, &strain, &p);
+        for (int a = 0; a < 4; ++a) {
+          Vector3d kv = Vector3d::Zero();
+          for (int b = 0; b < 4; ++b) {
+            kv +=
+                r * RestBlock(e, a, b) * r.transpose() * state.velocities.col(elements_.tets(b, e));
+          }
+          forces->col(elements_.tets(a, e)) -= rayleigh_stiffness_ * kv;
+        }
+      }
+    }
+  }
+}
+
+EnergyReport FemModel::Energy(const TissueState& state, const Eigen::Vector3d& gravity) const {
+  EnergyReport report;
+  for (int32_t e = 0; e < num_tets(); ++e) {
+    Matrix3d r, strain, p;
+    ElementStress(state.positions, e, &r, &strain, &p);
+    const double tr = strain.trace();
+    report.elastic += elements_.volumes[static_cast<size_t>(e)] *
+                      (mu_ * strain.squaredNorm() + 0.5 * lambda_ * tr * tr);
+  }
+  AddKineticAndGravity(mass_, state, gravity, &report);
+  return report;
+}
+
+Eigen::Matrix3d FemModel::LocalStiffness(const TissueState& state, int32_t node) const {
+  assert(node >= 0 && node < num_nodes());
+  Matrix3d k = Matrix3d::Zero();
+  for (int32_t k_index = elements_.node_start[static_cast<size_t>(node)];
+       k_index < elements_.node_start[static_cast<size_t>(node) + 1]; ++k_index) {
+    const int32_t packed = elements_.element_of_node[static_cast<size_t>(k_index)];
+    const int32_t e = packed / 4;
+    const int a = packed % 4;
+    Matrix3d r = Matrix3d::Identity();
+    if (kind_ == FemKind::kCorotational) {
+      r = PolarRotation(Matrix3d::Identity() +
+                        elements_.DisplacementGradient(state.positions, rest_, e));
+    }
+    k += r * RestBlock(e, a, a) * r.transpose();
+  }
+  return k;
+}
+
+double FemModel::LastSolverResidual(const TissueState& state) const {
+  return static_cast<const FemState&>(state).last_cg_residual;
+}
+
+void FemModel::Advance(const StepInputs& inputs, TissueState* base) const {
+  auto* state = static_cast<FemState*>(base);
+  const double dt = inputs.dt;
+  const auto n = static_cast<size_t>(num_nodes());
+  const double alpha = rayleigh_mass_, beta = rayleigh_stiffness_;
+  // f(x) and the rotations, then A = (1 + dt α) M + (dt² + dt β) K.
+  ElasticForces(state->positions, state->forces.data(), state->rotations.data());
+  const double k_scale = dt * dt + dt * beta;
+  const double m_scale = 1.0 + dt * alpha;
+  AssembleWarped(state->rotations.data(), k_scale, m_scale, &state->matrix);
+  // K v = (A v - m_scale M v) / k_scale (before the grasps join A: they have no damping).
+  double* const kv = state->temp.data();
+  const double* const v = state->velocities.data();
+  state->matrix.Multiply(v, kv, nullptr);
+  for (size_t i = 0; i < n; ++i) {
+    for (size_t c = 0; c < 3; ++c) {
+      kv[3 * i + c] = (kv[3 * i + c] - m_scale * mass_[i] * v[3 * i + c]) / k_scale;
+    }
+  }
+  // b = dt (f(x) + f_ext + M g - α M v - (β + dt) K v).
+  double* const b = state->rhs.data();
+  const double* const f = state->forces.data();
+  const double* const external =
+      inputs.external_forces != nullptr ? inputs.external_forces->data() : nullptr;
+  for (size_t i = 0; i < n; ++i) {
+    for (size_t c = 0; c < 3; ++c) {
+      const size_t k = 3 * i + c;
+      const double ext = external != nullptr ? external[k] : 0.0;
+      b[k] = dt * (f[k] + ext +
+                   mass_[i] * (inputs.gravity[static_cast<Eigen::Index>(c)] - alpha * v[k]) -
+                   (beta + dt) * kv[k]);
+    }
+  }
+  // Grasps: f = k (target - x), stiffness k I (implicit in x: dt² k on A, -dt² k v in b).
+  for (const Attachment& grasp : inputs.attachments) {
+    const auto i = static_cast<size_t>(grasp.node);
+    state->matrix.block(state->matrix.diagonal_block(grasp.node)).diagonal().array() +=
+        dt * dt * grasp.stiffness;
+    for (size_t c = 0; c < 3; ++c) {
+      const auto ci = static_cast<Eigen::Index>(c);
+      b[3 * i + c] += dt * grasp.stiffness *
+                      (grasp.target[ci] - state->positions(ci, grasp.node) - dt * v[3 * i + c]);
+    }
+  }
+  // Dirichlet nodes: Δv known (fixed: -v; prescribed: reach the target in dt); their columns
+  // move to the right-hand side.
+  std::fill(state->constrained.begin(), state->constrained.end(), uint8_t{0});
+  double* const known = state->temp.data();  // K v is no longer needed
+  std::fill(known, known + 3 * n, 0.0);
+  for (const int32_t node : inputs.fixed_nodes) {
+    const auto i = static_cast<size_t>(node);
+    state->constrained[i] = 1;
+    for (size_t c = 0; c < 3; ++c) known[3 * i + c] = -v[3 * i + c];
+  }
+  for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
+    const auto i = static_cast<size_t>(inputs.prescribed_nodes[k]);
+    state->constrained[i] = 1;
+    for (size_t c = 0; c < 3; ++c) {
+      const auto ci = static_cast<Eigen::Index>(c);
+      known[3 * i + c] = (inputs.prescribed_positions->coeff(ci, static_cast<Eigen::Index>(k)) -
+                          state->positions(ci, static_cast<Eigen::Index>(i))) /
+                             dt -
+                         v[3 * i + c];
+    }
+  }
+  if (!inputs.fixed_nodes.empty() || !inputs.prescribed_nodes.empty()) {
+    double* const moved = state->cg.product.data();  // free before the solve
+    state->matrix.Multiply(known, moved, nullptr);
+    for (size_t i = 0; i < n; ++i) {
+      for (size_t c = 0; c < 3; ++c) {
+        b[3 * i + c] =
+            state->constrained[i] != 0 ? known[3 * i + c] : b[3 * i + c] - moved[3 * i + c];
+      }
+    }
+  }
+  const CgResult cg =
+      ConjugateGradients(state->matrix, state->constrained.data(), b, state->dv.data(),
+                         cg_tolerance_, cg_max_iterations_, &state->cg, cg_fixed_iterations_);
+  state->counters.solver_iterations += cg.iterations;
+  if (!cg.converged) ++state->counters.solver_unconverged;
+  state->last_cg_residual = cg.relative_residual;
+  state->velocities += state->dv;
+  state->positions += dt * state->velocities;
+  ApplyFixedAndPrescribed(inputs, state);
+}
+
+StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state) const {
+  const auto n = static_cast<size_t>(num_nodes());
+  if (loads.external_forces != nullptr &&
+      (loads.external_forces->cols() != num_nodes() || !loads.external_forces->allFinite())) {
+    Refuse("static external forces must be 3 x num_nodes and finite");
+  }
+  if (!loads.gravity.allFinite()) Refuse("static gravity must be finite");
+  if (!(loads.load_steps > 0) || !(loads.tolerance > 0.0) || !(loads.step_tolerance >= 0.0) ||
+      !(loads.max_newton_iterations > 0)) {
+    Refuse("load_steps, tolerance, step_tolerance and max_newton_iterations must be > 0");
+  }
+  std::vector<int32_t> dof(3 * n, 0);
+  for (const int32_t node : loads.fixed_nodes) {
+    if (node < 0 || node >= num_nodes())
+      Refuse("fixed node " + std::to_string(node) + " out of range");
+    for (size_t c = 0; c < 3; ++c) dof[3 * static_cast<size_t>(node) + c] = -1;
+  }
+  if (!loads.prescribed_nodes.empty() &&
+      (loads.prescribed_positions == nullptr ||
+       loads.prescribed_positions->cols() !=
+           static_cast<Eigen::Index>(loads.prescribed_nodes.size()) ||
+       !loads.prescribed_positions->allFinite())) {
+    Refuse("prescribed positions must be 3 x prescribed_nodes and finite");
+  }
+  for (const int32_t node : loads.prescribed_nodes) {
+    if (node < 0 || node >= num_nodes()) {
+      Refuse("prescribed node " + std::to_string(node) + " out of range");
+    }
+    for (size_t c = 0; c < 3; ++c) dof[3 * static_cast<size_t>(node) + c] = -1;
+  }
+  int32_t num_dofs = 0;
+  for (int32_t& d : dof) {
+    if (d == 0) d = num_dofs++;
+  }
+  // Total load at full scale: external forces and gravity.
+  mesh::Points load = mesh::Points::Zero(3, num_nodes());
+  if (loads.external_forces != nullptr) load = *loads.external_forces;
+  for (size_t i = 0; i < n; ++i) {
+    load.col(static_cast<Eigen::Index>(i)) += mass_[i] * loads.gravity;
+  }
+  const mesh::Points start = state->positions;
+  StaticResult result;
+  mesh::Points forces(3, num_nodes());
+  BlockSparseMatrix tangent = pattern_;
+  SparseCholesky cholesky;
+  bool analysed = false;
+  // Free-DOF norm of r = f(x) + scale · load.
+  const auto residual = [&](double scale, Eigen::VectorXd* r) {
+    ElasticForces(state->positions, forces.data(), nullptr);
+    r->setZero(num_dofs);
+    double load_norm2 = 0.0;
+    for (size_t k = 0; k < 3 * n; ++k) {
+      if (dof[k] < 0) continue;
+      const double l = scale * load.data()[k];
+      (*r)[dof[k]] = forces.data()[k] + l;
+      load_norm2 += l * l;
+    }
+    return std::sqrt(load_norm2);
+  };
+  const auto potential = [&](double scale) {
+    double value = Energy(*state, Eigen::Vector3d::Zero()).elastic;
+    for (Eigen::Index k = 0; k < load.size(); ++k) {
+      value -= scale * load.data()[k] * (state->positions.data()[k] - rest_.data()[k]);
+    }
+    return value;
+  };
+  for (int step = 1; step <= loads.load_steps; ++step) {
+    const double scale = static_cast<double>(step) / loads.load_steps;
+    // Dirichlet values move in increments too.
+    for (const int32_t node : loads.fixed_nodes) state->positions.col(node) = rest_.col(node);
+    for (size_t k = 0; k < loads.prescribed_nodes.size(); ++k) {
+      const int32_t node = loads.prescribed_nodes[k];
+      const Eigen::Index kk = static_cast<Eigen::Index>(k);
+      state->positions.col(node) =
+          start.col(node) + scale * (loads.prescribed_positions->col(kk) - start.col(node));
+    }
+    result.residual_history.clear();
+    Eigen::VectorXd r;
+    const double load_norm = residual(scale, &r);
+    // A scale for "zero" when nothing is loaded (pure Dirichlet): the forces at the start.
+    double reference = load_norm;
+    if (!(reference > 0.0)) {
+      reference = 0.0;
+      for (Eigen::Index k = 0; k < forces.size(); ++k)
+        reference += forces.data()[k] * forces.data()[k];
+      reference = std::max(std::sqrt(reference), 1e-300);
+    }
+    double r_norm = r.norm();
+    bool small_step = false;
+    for (int it = 0;
+         it < loads.max_newton_iterations && r_norm > loads.tolerance * reference && !small_step;
+         ++it) {
+      // Tangent: exact when it is positive definite on the free DOFs, else the warped one.
+      LowerCsc k_free;
+      bool factorised = kind_ == FemKind::kLinear && analysed;  // K constant: reuse the factor
+      for (const bool exact : {true, false}) {
+        if (factorised) break;
+        tangent.SetZero();
+        for (int32_t e = 0; e < num_tets(); ++e) {
+          const Eigen::Matrix<double, 12, 12> ke = ElementTangent(state->positions, e, exact);
+          for (int a = 0; a < 4; ++a) {
+            for (int b = 0; b < 4; ++b) {
+              tangent.block(tangent.element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
+            }
+          }
+        }
+        k_free = tangent.ScalarLower(dof, num_dofs);
+        if (!analysed) {
+          cholesky.Analyse(k_free);
+          analysed = true;
+        }
+        factorised = cholesky.Factorise(k_free);
+        if (factorised) break;
+      }
+      if (!factorised) break;
+      Eigen::VectorXd du(num_dofs);
+      cholesky.Solve(r.data(), du.data());
+      // Backtracking on the potential (Armijo), accepting a full step that lowers the residual.
+      const double pi0 = potential(scale);
+      const double slope = -r.dot(du);  // dΠ/dt along du at t = 0 (r = -∇Π)
+      const mesh::Points before = state->positions;
+      double t = 1.0;
+      Eigen::VectorXd r_new;
+      double r_new_norm = 0.0;
+      for (int ls = 0; ls < 20; ++ls) {
+        state->positions = before;
+        for (size_t k = 0; k < 3 * n; ++k) {
+          if (dof[k] >= 0) state->positions.data()[k] += t * du[dof[k]];
+        }
+        residual(scale, &r_new);
+        r_new_norm = r_new.norm();
+        if (potential(scale) <= pi0 + 1e-4 * t * slope || r_new_norm < r_norm) break;
+        t *= 0.5;
+      }
+      r = r_new;
+      r_norm = r_new_norm;
+      double u_norm2 = 0.0;
+      for (size_t k = 0; k < 3 * n; ++k) {
+        const double u = state->positions.data()[k] - rest_.data()[k];
+        u_norm2 += u * u;
+      }
+      small_step = t * du.norm() <= loads.step_tolerance * std::sqrt(u_norm2);
+      ++result.newton_iterations;
+      result.residual_history.push_back(r_norm / reference);
+    }
+    result.final_residual = r_norm / reference;
+    result.converged = r_norm <= loads.tolerance * reference || small_step;
+    if (!result.converged) break;
+  }
+  // Reactions: what the supports must supply, -(f(x) + load) on the held DOFs.
+  ElasticForces(state->positions, forces.data(), nullptr);
+  result.reactions = mesh::Points::Zero(3, num_nodes());
+  for (size_t k = 0; k < 3 * n; ++k) {
+    if (dof[k] < 0) result.reactions.data()[k] = -(forces.data()[k] + load.data()[k]);
+  }
+  state->velocities.setZero();
+  return result;
+}
+
+}  // namespace somasim::models::fem

@@ -1,0 +1,151 @@
+// Finite elements on linear tetrahedra (SPEC §4.4, issue 5): linear elasticity (small strain,
+// constant stiffness) and corotational linear elasticity (per-element rotation by polar
+// decomposition, Müller & Gross 2004), behind the tissue-model interface. Pure kernel.
+//
+// Material: isotropic Hooke, λ = E ν / ((1 + ν)(1 - 2ν)), μ = E / (2 (1 + ν)). Per element with
+// deformation gradient F = Σ_a x_a ∇N_aᵀ:
+//   linear:        ε = sym(F) - I,                    P = σ(ε) = λ tr(ε) I + 2 μ ε
+//   corotational:  F = R S (polar), ε = S - I,        P = R σ(ε)
+//   energy         Ψ = V (μ ε:ε + λ/2 tr(ε)²),        nodal force f_a = -V P ∇N_a.
+// For the corotational model with the polar R these forces are the exact gradient of Ψ (the
+// terms in dR vanish because ε is symmetric and Rᵀ dR skew), so energy, forces and the tangent
+// are consistent. Masses are lumped (ρ V / 4 per corner). Damping is Rayleigh, C = α M + β K.
+//
+// Dynamics (Step): linearised implicit Euler (Baraff & Witkin 1998), as SOFA's EulerImplicit:
+//   (M + dt C + dt² K) Δv = dt (f(x) - C v + f_ext - dt K v),  v += Δv,  x += dt v,
+// with K the element stiffnesses rotated into the current frame, R K_e Rᵀ ("warped stiffness",
+// symmetric positive semi-definite, so CG always applies; for the linear model R = I), solved
+// by block-Jacobi preconditioned conjugate gradients warm-started from the last step's Δv.
+// Statics (SolveStatic): Newton's method on the total potential with the exact tangent (for the
+// corotational model including the derivative of R), a backtracking line search, load stepping,
+// and CHOLMOD's supernodal Cholesky factorisation for each Newton system.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <vector>
+
+#include "common/mesh/mesh_types.h"
+#include "server/models/fem/block_sparse.h"
+#include "server/models/fem/tet_elements.h"
+#include "server/models/tissue_model.h"
+
+namespace somasim::models::fem {
+
+enum class FemKind {
+  kLinear,        // small strain: valid for displacements and rotations well below 0.1 rad
+  kCorotational,  // large rotation, small strain: the real-time workhorse
+};
+
+struct FemParameters {
+  FemKind kind = FemKind::kCorotational;
+  double youngs_modulus = 0.0;      // E [Pa], > 0
+  double poisson_ratio = 0.45;      // ν [-], in (-1, 0.5); soft tissue is nearly incompressible
+  double density = 1000.0;          // ρ [kg/m³], > 0
+  double rayleigh_mass = 0.0;       // α [1/s], >= 0: C = α M + β K
+  double rayleigh_stiffness = 0.0;  // β [s], >= 0
+  // Step: CG stops at |r| <= cg_tolerance |b| or after cg_max_iterations (> 0).
+  double cg_tolerance = 1e-6;
+  int cg_max_iterations = 500;
+  // Run exactly cg_max_iterations per step whatever the residual (a fixed budget per step, as
+  // SOFA's CPU benchmark scene does with 20).
+  bool cg_fixed_iterations = false;
+  double speed_limit = 100.0;  // [m/s], > 0: a faster node marks a diverged step
+};
+
+// What SolveStatic holds and loads. Fixed and prescribed nodes as in StepInputs.
+struct StaticLoads {
+  const mesh::Points* external_forces = nullptr;       // [N], 3 × num_nodes, or none
+  Eigen::Vector3d gravity = Eigen::Vector3d::Zero();   // [m/s²]
+  std::span<const int32_t> fixed_nodes;                // held at their rest positions
+  std::span<const int32_t> prescribed_nodes;           // moved to prescribed_positions
+  const mesh::Points* prescribed_positions = nullptr;  // [m], 3 × prescribed_nodes.size()
+  int load_steps = 1;                                  // > 0: loads applied in equal increments
+  // Newton stops at |residual| <= tolerance × |load| (> 0), or when its correction is below
+  // step_tolerance × |displacement| (>= 0): the displacement has converged to 9 digits, and
+  // the residual of a slender, ill-conditioned structure may not fall further (|r| ~ ε cond(K)
+  // |load|). The linear model's tangent is constant: it is factorised once.
+  double tolerance = 1e-8;
+  double step_tolerance = 1e-9;
+  int max_newton_iterations = 50;
+};
+
+struct StaticResult {
+  bool converged = false;
+  int newton_iterations = 0;    // summed over load steps
+  double final_residual = 0.0;  // |r| / |load| at the end (free DOFs)
+  // Newton's relative residual after each iteration of the last load step (to see quadratic
+  // convergence).
+  std::vector<double> residual_history;
+  mesh::Points reactions;  // [N], 3 × num_nodes: force the supports exert (0 on free nodes)
+};
+
+class FemModel final : public TissueModel {
+ public:
+  // Throws std::invalid_argument naming the bad parameter or mesh fault.
+  static std::unique_ptr<FemModel> FromTetMesh(const mesh::TetMesh& mesh,
+                                               const FemParameters& parameters);
+
+  int32_t num_nodes() const override { return elements_.num_nodes(); }
+  int32_t num_tets() const { return elements_.num_tets(); }
+  FemKind kind() const { return kind_; }
+  std::unique_ptr<TissueState> MakeState() const override;
+  // The warped stiffness's diagonal block at `node` [N/m] (plus nothing else: grasps are the
+  // contact issue's).
+  Eigen::Matrix3d LocalStiffness(const TissueState& state, int32_t node) const override;
+  void InternalForces(const TissueState& state, mesh::Points* forces) const override;
+  EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
+
+  // Static equilibrium from the state's positions (rest for a fresh state): writes the
+  // equilibrium positions into state->positions and zeroes the velocities. Allocates (a
+  // factorisation per Newton iteration): not for the real-time path. Throws
+  // std::invalid_argument on bad loads (sizes, indices, NaN).
+  StaticResult SolveStatic(const StaticLoads& loads, TissueState* state) const;
+
+  // The element tangent -∂f_e/∂x_e (12 × 12, corners a = 0..3 × xyz) of element e at positions
+  // x: exact (with the derivative of R) or warped (R K_e Rᵀ). For tests and the static solver.
+  Eigen::Matrix<double, 12, 12> ElementTangent(const mesh::Points& x, int32_t e, bool exact) const;
+
+  // The relative residual |b - A Δv| / |b| CG reached in the state's last step.
+  double LastSolverResidual(const TissueState& state) const;
+
+  const std::vector<double>& masses() const { return mass_; }  // [kg], num_nodes
+  const mesh::Points& rest_positions() const { return rest_; }
+  const TetElements& elements() const { return elements_; }
+  double lambda() const { return lambda_; }  // [Pa]
+  double mu() const { return mu_; }          // [Pa]
+
+ protected:
+  void Advance(const StepInputs& inputs, TissueState* state) const override;
+
+ private:
+  FemModel() = default;
+  // Element e's rotation at x (identity for the linear model), its strain ε (symmetric) and
+  // the first Piola–Kirchhoff stress P [Pa].
+  void ElementStress(const mesh::Points& x, int32_t e, Eigen::Matrix3d* rotation,
+                     Eigen::Matrix3d* strain, Eigen::Matrix3d* stress) const;
+  // forces (3 × num_nodes) = elastic forces at x; also stores the element rotations (9 ×
+  // num_tets) when `rotations` is given.
+  void ElasticForces(const mesh::Points& x, double* forces, double* rotations) const;
+  // Assembles Σ_e R_e K_e R_eᵀ (rotations 9 × num_tets, or identity for the linear model) scaled
+  // by `scale` into `matrix` (zeroed first), then adds mass_scale · M on the diagonal.
+  void AssembleWarped(const double* rotations, double scale, double mass_scale,
+                      BlockSparseMatrix* matrix) const;
+  // The undeformed element stiffness block K_ab = V (λ ∇N_a ∇N_bᵀ + μ ∇N_b ∇N_aᵀ + μ ∇N_a·∇N_b I).
+  Eigen::Matrix3d RestBlock(int32_t e, int a, int b) const;
+
+  mesh::Points rest_;  // [m], 3 × num_nodes
+  TetElements elements_;
+  BlockSparseMatrix pattern_;  // the stiffness pattern (values unused)
+  std::vector<double> mass_;   // [kg]
+  FemKind kind_ = FemKind::kCorotational;
+  double lambda_ = 0.0, mu_ = 0.0;  // Lamé [Pa]
+  double rayleigh_mass_ = 0.0, rayleigh_stiffness_ = 0.0;
+  double cg_tolerance_ = 1e-6;
+  int cg_max_iterations_ = 500;
+  bool cg_fixed_iterations_ = false;
+};
+
+}  // namespace somasim::models::fem
