@@ -23,11 +23,15 @@ void CheckParameters(const FemParameters& p) {
       Refuse(std::string(what) + " must be a finite value > 0");
     }
   };
-  finite_positive(p.youngs_modulus, "youngs_modulus [Pa]");
+  if (p.kind == FemKind::kHyperelastic) {
+    CheckMaterial(p.hyperelastic);
+  } else {
+    finite_positive(p.youngs_modulus, "youngs_modulus [Pa]");
+  }
   finite_positive(p.density, "density [kg/m^3]");
   finite_positive(p.speed_limit, "speed_limit [m/s]");
   finite_positive(p.cg_tolerance, "cg_tolerance");
-  if (!(p.poisson_ratio > -1.0 && p.poisson_ratio < 0.5)) {
+  if (p.kind != FemKind::kHyperelastic && !(p.poisson_ratio > -1.0 && p.poisson_ratio < 0.5)) {
     Refuse("poisson_ratio must lie in (-1, 0.5)");
   }
   if (!(p.rayleigh_mass >= 0.0) || !std::isfinite(p.rayleigh_mass) ||
@@ -73,6 +77,12 @@ std::unique_ptr<FemModel> FemModel::FromTetMesh(const mesh::TetMesh& mesh,
   model->lambda_ = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
   model->mu_ = e / (2.0 * (1.0 + nu));
   model->kind_ = parameters.kind;
+  model->material_ = parameters.hyperelastic;
+  if (parameters.kind == FemKind::kHyperelastic) {  // λ, μ at rest (the rest stiffness)
+    const double k0 = parameters.hyperelastic.InitialBulkModulus();
+    model->mu_ = parameters.hyperelastic.InitialShearModulus();
+    model->lambda_ = k0 - 2.0 * model->mu_ / 3.0;
+  }
   model->rayleigh_mass_ = parameters.rayleigh_mass;
   model->rayleigh_stiffness_ = parameters.rayleigh_stiffness;
   model->cg_tolerance_ = parameters.cg_tolerance;
@@ -109,6 +119,12 @@ Matrix3d FemModel::RestBlock(int32_t e, int a, int b) const {
 void FemModel::ElementStress(const mesh::Points& x, int32_t e, Matrix3d* rotation, Matrix3d* strain,
                              Matrix3d* stress) const {
   const Matrix3d h = elements_.DisplacementGradient(x, rest_, e);  // F - I
+  if (kind_ == FemKind::kHyperelastic) {
+    rotation->setIdentity();
+    *strain = 0.5 * (h + h.transpose() + h.transpose() * h);  // Green's E, for diagnostics
+    *stress = FirstPiolaStress(material_, Matrix3d::Identity() + h);
+    return;
+  }
   if (kind_ == FemKind::kLinear) {
     rotation->setIdentity();
     *strain = 0.5 * (h + h.transpose());
@@ -140,10 +156,20 @@ void FemModel::ElasticForces(const mesh::Points& x, double* forces, double* rota
   }
 }
 
-void FemModel::AssembleWarped(const double* rotations, double scale, double mass_scale,
-                              BlockSparseMatrix* matrix) const {
+void FemModel::AssembleWarped(const mesh::Points& x, const double* rotations, double scale,
+                              double mass_scale, BlockSparseMatrix* matrix) const {
   matrix->SetZero();
   for (int32_t e = 0; e < num_tets(); ++e) {
+    if (kind_ == FemKind::kHyperelastic) {  // the exact tangent: there is no rotated one
+      const Eigen::Matrix<double, 12, 12> k = ElementTangent(x, e, true);
+      for (int a = 0; a < 4; ++a) {
+        for (int b = 0; b < 4; ++b) {
+          matrix->block(matrix->element_block(e, a, b)).noalias() +=
+              scale * k.block<3, 3>(3 * a, 3 * b);
+        }
+      }
+      continue;
+    }
     const Eigen::Map<const Matrix3d> r(rotations + 9 * static_cast<size_t>(e));
     for (int a = 0; a < 4; ++a) {
       for (int b = 0; b < 4; ++b) {
@@ -163,6 +189,20 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
   Eigen::Matrix<double, 12, 12> k;
   Matrix3d r, strain, p;
   ElementStress(x, e, &r, &strain, &p);
+  if (kind_ == FemKind::kHyperelastic) {
+    const Matrix3d f = Matrix3d::Identity() + elements_.DisplacementGradient(x, rest_, e);
+    const double v = elements_.volumes[static_cast<size_t>(e)];
+    for (int b = 0; b < 4; ++b) {
+      const Vector3d gb = elements_.gradients.col(4 * e + b);
+      for (int c = 0; c < 3; ++c) {
+        const Matrix3d dp = StressDifferential(material_, f, Vector3d::Unit(c) * gb.transpose());
+        for (int a = 0; a < 4; ++a) {
+          k.block<3, 1>(3 * a, 3 * b + c) = v * (dp * elements_.gradients.col(4 * e + a));
+        }
+      }
+    }
+    return k;
+  }
   if (!exact) {
     for (int a = 0; a < 4; ++a) {
       for (int b = 0; b < 4; ++b) {
@@ -213,13 +253,11 @@ void FemModel::InternalForces(const TissueState& state, mesh::Points* forces) co
     }
     if (rayleigh_stiffness_ > 0.0) {
       for (int32_t e = 0; e < num_tets(); ++e) {
-        Matrix3d r, strain, p;
-        ElementStress(state.positions, e, &r, &strain, &p);
+        const Eigen::Matrix<double, 12, 12> k = ElementTangent(state.positions, e, false);
         for (int a = 0; a < 4; ++a) {
           Vector3d kv = Vector3d::Zero();
           for (int b = 0; b < 4; ++b) {
-            kv +=
-                r * RestBlock(e, a, b) * r.transpose() * state.velocities.col(elements_.tets(b, e));
+            kv += k.block<3, 3>(3 * a, 3 * b) * state.velocities.col(elements_.tets(b, e));
           }
           forces->col(elements_.tets(a, e)) -= rayleigh_stiffness_ * kv;
         }
@@ -233,9 +271,15 @@ EnergyReport FemModel::Energy(const TissueState& state, const Eigen::Vector3d& g
   for (int32_t e = 0; e < num_tets(); ++e) {
     Matrix3d r, strain, p;
     ElementStress(state.positions, e, &r, &strain, &p);
+    const double v = elements_.volumes[static_cast<size_t>(e)];
+    if (kind_ == FemKind::kHyperelastic) {
+      report.elastic +=
+          v * StrainEnergy(material_, Matrix3d::Identity() + elements_.DisplacementGradient(
+                                                                 state.positions, rest_, e));
+      continue;
+    }
     const double tr = strain.trace();
-    report.elastic += elements_.volumes[static_cast<size_t>(e)] *
-                      (mu_ * strain.squaredNorm() + 0.5 * lambda_ * tr * tr);
+    report.elastic += v * (mu_ * strain.squaredNorm() + 0.5 * lambda_ * tr * tr);
   }
   AddKineticAndGravity(mass_, state, gravity, &report);
   return report;
@@ -249,6 +293,10 @@ Eigen::Matrix3d FemModel::LocalStiffness(const TissueState& state, int32_t node)
     const int32_t packed = elements_.element_of_node[static_cast<size_t>(k_index)];
     const int32_t e = packed / 4;
     const int a = packed % 4;
+    if (kind_ == FemKind::kHyperelastic) {
+      k += ElementTangent(state.positions, e, true).block<3, 3>(3 * a, 3 * a);
+      continue;
+    }
     Matrix3d r = Matrix3d::Identity();
     if (kind_ == FemKind::kCorotational) {
       r = PolarRotation(Matrix3d::Identity() +
@@ -272,7 +320,7 @@ void FemModel::Advance(const StepInputs& inputs, TissueState* base) const {
   ElasticForces(state->positions, state->forces.data(), state->rotations.data());
   const double k_scale = dt * dt + dt * beta;
   const double m_scale = 1.0 + dt * alpha;
-  AssembleWarped(state->rotations.data(), k_scale, m_scale, &state->matrix);
+  AssembleWarped(state->positions, state->rotations.data(), k_scale, m_scale, &state->matrix);
   // K v = (A v - m_scale M v) / k_scale (before the grasps join A: they have no damping).
   double* const kv = state->temp.data();
   const double* const v = state->velocities.data();
@@ -379,6 +427,14 @@ StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state)
     }
     for (size_t c = 0; c < 3; ++c) dof[3 * static_cast<size_t>(node) + c] = -1;
   }
+  for (const ComponentConstraint& c : loads.components) {
+    if (c.node < 0 || c.node >= num_nodes() || c.axis < 0 || c.axis > 2 ||
+        !std::isfinite(c.value)) {
+      Refuse("component constraint on node " + std::to_string(c.node) + " axis " +
+             std::to_string(c.axis) + " is out of range or not finite");
+    }
+    dof[3 * static_cast<size_t>(c.node) + static_cast<size_t>(c.axis)] = -1;
+  }
   int32_t num_dofs = 0;
   for (int32_t& d : dof) {
     if (d == 0) d = num_dofs++;
@@ -415,55 +471,93 @@ StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state)
     }
     return value;
   };
+  // Factorises the tangent at the state's positions: the exact one when it is positive definite
+  // on the free DOFs, else the rotated one (corotational), else the rest stiffness (always
+  // positive definite: a quasi-Newton step). The linear model's K is constant: factorised once.
+  bool linear_factorised = false;
+  const auto factorise_tangent = [&]() {
+    if (kind_ == FemKind::kLinear && linear_factorised) return true;
+    for (int attempt = 0; attempt < 3; ++attempt) {
+      if (attempt == 1 && kind_ != FemKind::kCorotational) continue;
+      tangent.SetZero();
+      for (int32_t e = 0; e < num_tets(); ++e) {
+        const Eigen::Matrix<double, 12, 12> ke =
+            ElementTangent(attempt == 2 ? rest_ : state->positions, e, attempt != 1);
+        for (int a = 0; a < 4; ++a) {
+          for (int b = 0; b < 4; ++b) {
+            tangent.block(tangent.element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
+          }
+        }
+      }
+      const LowerCsc k_free = tangent.ScalarLower(dof, num_dofs);
+      if (!analysed) {
+        cholesky.Analyse(k_free);
+        analysed = true;
+      }
+      if (cholesky.Factorise(k_free)) {
+        linear_factorised = true;
+        return true;
+      }
+    }
+    return false;
+  };
   for (int step = 1; step <= loads.load_steps; ++step) {
     const double scale = static_cast<double>(step) / loads.load_steps;
-    // Dirichlet values move in increments too.
-    for (const int32_t node : loads.fixed_nodes) state->positions.col(node) = rest_.col(node);
+    // This step's Dirichlet values (they move in increments too), as an increment d.
+    mesh::Points target = state->positions;
+    for (const int32_t node : loads.fixed_nodes) target.col(node) = rest_.col(node);
     for (size_t k = 0; k < loads.prescribed_nodes.size(); ++k) {
       const int32_t node = loads.prescribed_nodes[k];
       const Eigen::Index kk = static_cast<Eigen::Index>(k);
-      state->positions.col(node) =
+      target.col(node) =
           start.col(node) + scale * (loads.prescribed_positions->col(kk) - start.col(node));
     }
-    result.residual_history.clear();
+    for (const ComponentConstraint& c : loads.components) {
+      const double from = start(c.axis, c.node);
+      target(c.axis, c.node) = from + scale * (c.value - from);
+    }
+    const mesh::Points increment = target - state->positions;  // zero on free DOFs
+    // Predictor: the free DOFs follow the held ones through the tangent at the last equilibrium,
+    // K_ff Δu_f = r_f - K_fc d_c (moving only the held nodes would crush the elements next to
+    // them, and a hyperelastic tangent there may not be positive definite).
     Eigen::VectorXd r;
+    if (num_dofs > 0 && increment.cwiseAbs().maxCoeff() > 0.0 && factorise_tangent()) {
+      residual(scale, &r);
+      mesh::Points moved(3, num_nodes());
+      tangent.Multiply(increment.data(), moved.data(), nullptr);
+      for (size_t k = 0; k < 3 * n; ++k) {
+        if (dof[k] >= 0) r[dof[k]] -= moved.data()[k];
+      }
+      Eigen::VectorXd du(num_dofs);
+      cholesky.Solve(r.data(), du.data());
+      const mesh::Points before = state->positions;
+      state->positions = target;
+      for (size_t k = 0; k < 3 * n; ++k) {
+        if (dof[k] >= 0) state->positions.data()[k] += du[dof[k]];
+      }
+      if (!std::isfinite(residual(scale, &r)) || !r.allFinite()) {  // overshot: no predictor
+        state->positions = before + increment;
+      }
+    } else {
+      state->positions = target;
+    }
+    result.residual_history.clear();
     const double load_norm = residual(scale, &r);
     // A scale for "zero" when nothing is loaded (pure Dirichlet): the forces at the start.
     double reference = load_norm;
     if (!(reference > 0.0)) {
       reference = 0.0;
-      for (Eigen::Index k = 0; k < forces.size(); ++k)
+      for (Eigen::Index k = 0; k < forces.size(); ++k) {
         reference += forces.data()[k] * forces.data()[k];
+      }
       reference = std::max(std::sqrt(reference), 1e-300);
     }
     double r_norm = r.norm();
     bool small_step = false;
-    for (int it = 0;
-         it < loads.max_newton_iterations && r_norm > loads.tolerance * reference && !small_step;
+    for (int it = 0; num_dofs > 0 && it < loads.max_newton_iterations &&
+                     r_norm > loads.tolerance * reference && !small_step;
          ++it) {
-      // Tangent: exact when it is positive definite on the free DOFs, else the warped one.
-      LowerCsc k_free;
-      bool factorised = kind_ == FemKind::kLinear && analysed;  // K constant: reuse the factor
-      for (const bool exact : {true, false}) {
-        if (factorised) break;
-        tangent.SetZero();
-        for (int32_t e = 0; e < num_tets(); ++e) {
-          const Eigen::Matrix<double, 12, 12> ke = ElementTangent(state->positions, e, exact);
-          for (int a = 0; a < 4; ++a) {
-            for (int b = 0; b < 4; ++b) {
-              tangent.block(tangent.element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
-            }
-          }
-        }
-        k_free = tangent.ScalarLower(dof, num_dofs);
-        if (!analysed) {
-          cholesky.Analyse(k_free);
-          analysed = true;
-        }
-        factorised = cholesky.Factorise(k_free);
-        if (factorised) break;
-      }
-      if (!factorised) break;
+      if (!factorise_tangent()) break;
       Eigen::VectorXd du(num_dofs);
       cholesky.Solve(r.data(), du.data());
       // Backtracking on the potential (Armijo), accepting a full step that lowers the residual.
@@ -495,7 +589,7 @@ StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state)
       result.residual_history.push_back(r_norm / reference);
     }
     result.final_residual = r_norm / reference;
-    result.converged = r_norm <= loads.tolerance * reference || small_step;
+    result.converged = r_norm <= loads.tolerance * reference || small_step || num_dofs == 0;
     if (!result.converged) break;
   }
   // Reactions: what the supports must supply, -(f(x) + load) on the held DOFs.

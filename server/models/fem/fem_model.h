@@ -1,6 +1,8 @@
 // Finite elements on linear tetrahedra (SPEC §4.4, issue 5): linear elasticity (small strain,
-// constant stiffness) and corotational linear elasticity (per-element rotation by polar
-// decomposition, Müller & Gross 2004), behind the tissue-model interface. Pure kernel.
+// constant stiffness), corotational linear elasticity (per-element rotation by polar
+// decomposition, Müller & Gross 2004) and total-Lagrangian hyperelasticity (hyperelastic.h:
+// seed 000's reduced-polynomial liver, neo-Hookean, St Venant–Kirchhoff; f_a = -V P(F) ∇N_a,
+// tangent from dP), behind the tissue-model interface. Pure kernel.
 //
 // Material: isotropic Hooke, λ = E ν / ((1 + ν)(1 - 2ν)), μ = E / (2 (1 + ν)). Per element with
 // deformation gradient F = Σ_a x_a ∇N_aᵀ:
@@ -29,6 +31,7 @@
 
 #include "common/mesh/mesh_types.h"
 #include "server/models/fem/block_sparse.h"
+#include "server/models/fem/hyperelastic.h"
 #include "server/models/fem/tet_elements.h"
 #include "server/models/tissue_model.h"
 
@@ -37,15 +40,17 @@ namespace somasim::models::fem {
 enum class FemKind {
   kLinear,        // small strain: valid for displacements and rotations well below 0.1 rad
   kCorotational,  // large rotation, small strain: the real-time workhorse
+  kHyperelastic,  // total Lagrangian, large strain: FemParameters::hyperelastic (seed 000)
 };
 
 struct FemParameters {
   FemKind kind = FemKind::kCorotational;
-  double youngs_modulus = 0.0;      // E [Pa], > 0
-  double poisson_ratio = 0.45;      // ν [-], in (-1, 0.5); soft tissue is nearly incompressible
-  double density = 1000.0;          // ρ [kg/m³], > 0
-  double rayleigh_mass = 0.0;       // α [1/s], >= 0: C = α M + β K
-  double rayleigh_stiffness = 0.0;  // β [s], >= 0
+  double youngs_modulus = 0.0;  // E [Pa], > 0 (linear and corotational)
+  double poisson_ratio = 0.45;  // ν [-], in (-1, 0.5); soft tissue is nearly incompressible
+  HyperelasticMaterial hyperelastic = LiverNava2008();  // kHyperelastic only
+  double density = 1000.0;                              // ρ [kg/m³], > 0
+  double rayleigh_mass = 0.0;                           // α [1/s], >= 0: C = α M + β K
+  double rayleigh_stiffness = 0.0;                      // β [s], >= 0
   // Step: CG stops at |r| <= cg_tolerance |b| or after cg_max_iterations (> 0).
   double cg_tolerance = 1e-6;
   int cg_max_iterations = 500;
@@ -55,6 +60,14 @@ struct FemParameters {
   double speed_limit = 100.0;  // [m/s], > 0: a faster node marks a diverged step
 };
 
+// One coordinate of one node held at a value (a symmetry plane, a roller): position(axis, node)
+// = value [m] at full load.
+struct ComponentConstraint {
+  int32_t node = 0;
+  int axis = 0;  // 0, 1, 2 = x, y, z
+  double value = 0.0;
+};
+
 // What SolveStatic holds and loads. Fixed and prescribed nodes as in StepInputs.
 struct StaticLoads {
   const mesh::Points* external_forces = nullptr;       // [N], 3 × num_nodes, or none
@@ -62,6 +75,7 @@ struct StaticLoads {
   std::span<const int32_t> fixed_nodes;                // held at their rest positions
   std::span<const int32_t> prescribed_nodes;           // moved to prescribed_positions
   const mesh::Points* prescribed_positions = nullptr;  // [m], 3 × prescribed_nodes.size()
+  std::span<const ComponentConstraint> components;     // single coordinates held or moved
   int load_steps = 1;                                  // > 0: loads applied in equal increments
   // Newton stops at |residual| <= tolerance × |load| (> 0), or when its correction is below
   // step_tolerance × |displacement| (>= 0): the displacement has converged to 9 digits, and
@@ -105,7 +119,8 @@ class FemModel final : public TissueModel {
   StaticResult SolveStatic(const StaticLoads& loads, TissueState* state) const;
 
   // The element tangent -∂f_e/∂x_e (12 × 12, corners a = 0..3 × xyz) of element e at positions
-  // x: exact (with the derivative of R) or warped (R K_e Rᵀ). For tests and the static solver.
+  // x: exact (with the derivative of R) or warped (R K_e Rᵀ; the hyperelastic model has only
+  // the exact one). For tests and the static solver.
   Eigen::Matrix<double, 12, 12> ElementTangent(const mesh::Points& x, int32_t e, bool exact) const;
 
   // The relative residual |b - A Δv| / |b| CG reached in the state's last step.
@@ -129,10 +144,11 @@ class FemModel final : public TissueModel {
   // forces (3 × num_nodes) = elastic forces at x; also stores the element rotations (9 ×
   // num_tets) when `rotations` is given.
   void ElasticForces(const mesh::Points& x, double* forces, double* rotations) const;
-  // Assembles Σ_e R_e K_e R_eᵀ (rotations 9 × num_tets, or identity for the linear model) scaled
-  // by `scale` into `matrix` (zeroed first), then adds mass_scale · M on the diagonal.
-  void AssembleWarped(const double* rotations, double scale, double mass_scale,
-                      BlockSparseMatrix* matrix) const;
+  // Assembles Σ_e R_e K_e R_eᵀ (rotations 9 × num_tets, or identity for the linear model; the
+  // exact tangent at x for the hyperelastic one) scaled by `scale` into `matrix` (zeroed
+  // first), then adds mass_scale · M on the diagonal.
+  void AssembleWarped(const mesh::Points& x, const double* rotations, double scale,
+                      double mass_scale, BlockSparseMatrix* matrix) const;
   // The undeformed element stiffness block K_ab = V (λ ∇N_a ∇N_bᵀ + μ ∇N_b ∇N_aᵀ + μ ∇N_a·∇N_b I).
   Eigen::Matrix3d RestBlock(int32_t e, int a, int b) const;
 
@@ -141,6 +157,7 @@ class FemModel final : public TissueModel {
   BlockSparseMatrix pattern_;  // the stiffness pattern (values unused)
   std::vector<double> mass_;   // [kg]
   FemKind kind_ = FemKind::kCorotational;
+  HyperelasticMaterial material_;
   double lambda_ = 0.0, mu_ = 0.0;  // Lamé [Pa]
   double rayleigh_mass_ = 0.0, rayleigh_stiffness_ = 0.0;
   double cg_tolerance_ = 1e-6;

@@ -121,7 +121,7 @@ TEST_P(FemKinds, PatchTestReproducesAHomogeneousStrain) {
   const auto model = FemModel::FromTetMesh(box, Material(GetParam()));
   Matrix3d g = Matrix3d::Identity();
   g += 0.03 * (Matrix3d() << 1.0, 0.4, -0.2, 0.1, -0.5, 0.3, 0.2, 0.1, 0.7).finished();
-  if (GetParam() == FemKind::kCorotational) {  // large rotation too: F = Q (I + small)
+  if (GetParam() != FemKind::kLinear) {  // large rotation too: F = Q (I + small)
     g = Eigen::AngleAxisd(0.7, Vector3d(0.3, -1.0, 0.2).normalized()).matrix() * g;
   }
   const Vector3d c(0.1, -0.2, 0.05);
@@ -153,6 +153,49 @@ INSTANTIATE_TEST_SUITE_P(Fem, FemKinds, ::testing::Values(FemKind::kLinear, FemK
                            return std::string(kind.param == FemKind::kLinear ? "Linear"
                                                                              : "Corotational");
                          });
+
+// Uniaxial tension of a liver cube (seed 000's material, near its incompressible limit):
+// symmetry planes x = 0, y = 0, z = 0, the face x = 1 pulled to stretch λ, the rest free. The
+// analytic incompressible answer: Ī1 = λ² + 2/λ, Cauchy σ = 2 (λ² - 1/λ) W'(Ī1), nominal
+// P = σ / λ, which the face's reaction must match.
+TEST(FemHyperelastic, UniaxialStretchMatchesTheIncompressibleCurve) {
+  const mesh::TetMesh cube = mesh_gen::BoxGridTets(3, 3, 3, Vector3d::Zero(), Vector3d::Ones());
+  FemParameters p = Material(FemKind::kHyperelastic);
+  p.hyperelastic = LiverNava2008(0.4999);  // κ0 ≈ 5000 μ0
+  const auto model = FemModel::FromTetMesh(cube, p);
+  const HyperelasticMaterial& m = p.hyperelastic;
+  for (const double stretch : {1.05, 1.15, 1.3}) {
+    std::vector<ComponentConstraint> held;
+    std::vector<int32_t> pulled;
+    for (int32_t i = 0; i < model->num_nodes(); ++i) {
+      for (int axis = 0; axis < 3; ++axis) {
+        if (cube.vertices(axis, i) < 1e-9) held.push_back({i, axis, 0.0});
+      }
+      if (cube.vertices(0, i) > 1.0 - 1e-9) {
+        held.push_back({i, 0, stretch});
+        pulled.push_back(i);
+      }
+    }
+    StaticLoads loads;
+    loads.components = held;
+    loads.load_steps = 4;
+    auto state = model->MakeState();
+    const StaticResult result = model->SolveStatic(loads, state.get());
+    ASSERT_TRUE(result.converged) << "stretch " << stretch;
+    double force = 0.0;  // [N] on the unit face: the nominal stress [Pa]
+    for (const int32_t i : pulled) force += result.reactions(0, i);
+    const double i1_bar = stretch * stretch + 2.0 / stretch;
+    double w1 = 0.0;
+    for (int k = 1; k <= 5; ++k) {
+      w1 += k * m.c[static_cast<size_t>(k - 1)] * std::pow(i1_bar - 3.0, k - 1);
+    }
+    const double nominal = 2.0 * (stretch * stretch - 1.0 / stretch) * w1 / stretch;
+    EXPECT_NEAR(force, nominal, 0.01 * nominal) << "stretch " << stretch;
+    // Nearly incompressible: the lateral faces contract by 1/√λ.
+    const double lateral = state->positions.row(1).maxCoeff();
+    EXPECT_NEAR(lateral, 1.0 / std::sqrt(stretch), 1e-3) << "stretch " << stretch;
+  }
+}
 
 TEST(FemCorotational, IsInvariantUnderRigidRotation) {
   const auto model = FemModel::FromTetMesh(SmallBox(), Material(FemKind::kCorotational));
