@@ -17,6 +17,13 @@ using Eigen::Vector3d;
 
 [[noreturn]] void Refuse(const std::string& what) { throw std::invalid_argument("fem: " + what); }
 
+// e^{-dt/τ} and β = (τ/dt)(1 - e^{-dt/τ}) of a Prony term (β → 1 as dt/τ → 0).
+void PronyFactors(const PronyTerm& term, double dt, double* decay, double* beta) {
+  const double x = dt / term.tau;
+  *decay = std::exp(-x);
+  *beta = x > 1e-8 ? -std::expm1(-x) / x : 1.0 - 0.5 * x;
+}
+
 void CheckParameters(const FemParameters& p) {
   const auto finite_positive = [](double value, const char* what) {
     if (!(value > 0.0) || !std::isfinite(value)) {
@@ -39,6 +46,20 @@ void CheckParameters(const FemParameters& p) {
     Refuse("rayleigh_mass [1/s] and rayleigh_stiffness [s] must be finite and >= 0");
   }
   if (!(p.cg_max_iterations > 0)) Refuse("cg_max_iterations must be > 0");
+  if (p.prony.size() > kMaxPronyTerms) {
+    Refuse("at most " + std::to_string(kMaxPronyTerms) + " Prony terms");
+  }
+  double gamma_sum = 0.0;
+  for (size_t k = 0; k < p.prony.size(); ++k) {
+    const PronyTerm& t = p.prony[k];
+    if (!(t.gamma >= 0.0) || !std::isfinite(t.gamma) || !(t.tau > 0.0) || !std::isfinite(t.tau)) {
+      Refuse("Prony term " + std::to_string(k + 1) + " needs gamma >= 0 and tau [s] > 0");
+    }
+    gamma_sum += t.gamma;
+  }
+  if (!(gamma_sum <= 1.0)) {
+    Refuse("the Prony gammas sum to more than 1 (G(0) = 1 needs gamma_inf = 1 - sum >= 0)");
+  }
 }
 
 // The skew matrix [w]× with [w]× u = w × u.
@@ -58,9 +79,25 @@ class FemState final : public TissueState {
   mesh::Points forces, rhs, dv, temp;  // 3 × num_nodes
   std::vector<uint8_t> constrained;    // num_nodes
   double last_cg_residual = 0.0;       // |r| / |b| of the last step's solve
+  // QLV internal variables h_k (9 × num_prony × num_tets, element-major), the elastic stress of
+  // the last accepted step S^e (9 × num_tets), a step's offset (9 × num_tets), and the copies
+  // a rejected step restores.
+  std::vector<double> history, elastic_last, offset, good_history, good_elastic_last;
+
+ protected:
+  void SaveGood() override {
+    std::copy(history.begin(), history.end(), good_history.begin());
+    std::copy(elastic_last.begin(), elastic_last.end(), good_elastic_last.begin());
+  }
+  void RestoreGood() override {
+    std::copy(good_history.begin(), good_history.end(), history.begin());
+    std::copy(good_elastic_last.begin(), good_elastic_last.end(), elastic_last.begin());
+  }
 };
 
 }  // namespace
+
+std::vector<PronyTerm> LiverNava2008Prony() { return {{0.5054, 0.5784}, {0.1485, 6.8863}}; }
 
 std::unique_ptr<FemModel> FemModel::FromTetMesh(const mesh::TetMesh& mesh,
                                                 const FemParameters& parameters) {
@@ -78,6 +115,7 @@ std::unique_ptr<FemModel> FemModel::FromTetMesh(const mesh::TetMesh& mesh,
   model->mu_ = e / (2.0 * (1.0 + nu));
   model->kind_ = parameters.kind;
   model->material_ = parameters.hyperelastic;
+  model->prony_ = parameters.prony;
   if (parameters.kind == FemKind::kHyperelastic) {  // λ, μ at rest (the rest stiffness)
     const double k0 = parameters.hyperelastic.InitialBulkModulus();
     model->mu_ = parameters.hyperelastic.InitialShearModulus();
@@ -105,6 +143,13 @@ std::unique_ptr<TissueState> FemModel::MakeState() const {
     *p = mesh::Points::Zero(3, num_nodes());
   }
   state->constrained.assign(static_cast<size_t>(num_nodes()), 0);
+  const size_t m = static_cast<size_t>(num_tets());
+  for (std::vector<double>* v : {&state->history, &state->good_history}) {
+    v->assign(9 * prony_.size() * m, 0.0);
+  }
+  for (std::vector<double>* v : {&state->elastic_last, &state->offset, &state->good_elastic_last}) {
+    v->assign(prony_.empty() ? 0 : 9 * m, 0.0);
+  }
   return state;
 }
 
@@ -117,12 +162,20 @@ Matrix3d FemModel::RestBlock(int32_t e, int a, int b) const {
 }
 
 void FemModel::ElementStress(const mesh::Points& x, int32_t e, Matrix3d* rotation, Matrix3d* strain,
-                             Matrix3d* stress) const {
+                             Matrix3d* stress, const ViscousStep* viscous) const {
   const Matrix3d h = elements_.DisplacementGradient(x, rest_, e);  // F - I
+  const bool has_offset = viscous != nullptr && viscous->offset != nullptr;
   if (kind_ == FemKind::kHyperelastic) {
     rotation->setIdentity();
     *strain = 0.5 * (h + h.transpose() + h.transpose() * h);  // Green's E, for diagnostics
-    *stress = FirstPiolaStress(material_, Matrix3d::Identity() + h);
+    const Matrix3d f = Matrix3d::Identity() + h;
+    *stress = FirstPiolaStress(material_, f);
+    if (viscous != nullptr) {  // P = F (g S^e + offset) = g P^e + F offset
+      *stress *= viscous->g;
+      if (has_offset) {
+        *stress += f * Eigen::Map<const Matrix3d>(viscous->offset + 9 * static_cast<size_t>(e));
+      }
+    }
     return;
   }
   if (kind_ == FemKind::kLinear) {
@@ -135,15 +188,101 @@ void FemModel::ElementStress(const mesh::Points& x, int32_t e, Matrix3d* rotatio
         (rotation->transpose() - Matrix3d::Identity()) + rotation->transpose() * h;
     *strain = 0.5 * (s_minus_i + s_minus_i.transpose());
   }
-  const Matrix3d sigma = lambda_ * strain->trace() * Matrix3d::Identity() + 2.0 * mu_ * *strain;
+  Matrix3d sigma = lambda_ * strain->trace() * Matrix3d::Identity() + 2.0 * mu_ * *strain;
+  if (viscous != nullptr) {  // rotated frame: S = g σ^e + offset
+    sigma *= viscous->g;
+    if (has_offset) {
+      sigma += Eigen::Map<const Matrix3d>(viscous->offset + 9 * static_cast<size_t>(e));
+    }
+  }
   *stress = *rotation * sigma;
 }
 
-void FemModel::ElasticForces(const mesh::Points& x, double* forces, double* rotations) const {
+Matrix3d FemModel::ElasticStress(const mesh::Points& x, int32_t e) const {
+  Matrix3d r, strain, p;
+  ElementStress(x, e, &r, &strain, &p);
+  if (kind_ == FemKind::kHyperelastic) {  // S^e = F⁻¹ P^e
+    return (Matrix3d::Identity() + elements_.DisplacementGradient(x, rest_, e)).inverse() * p;
+  }
+  return r.transpose() * p;  // σ^e in the rotated frame
+}
+
+double FemModel::ElasticEnergy(const mesh::Points& x, const ViscousStep* viscous) const {
+  double energy = 0.0;
+  const double g = viscous != nullptr ? viscous->g : 1.0;
+  const bool has_offset = viscous != nullptr && viscous->offset != nullptr;
+  for (int32_t e = 0; e < num_tets(); ++e) {
+    const double v = elements_.volumes[static_cast<size_t>(e)];
+    Matrix3d r, strain, p;
+    double w = 0.0;
+    if (kind_ == FemKind::kHyperelastic) {
+      const Matrix3d h = elements_.DisplacementGradient(x, rest_, e);
+      w = StrainEnergy(material_, Matrix3d::Identity() + h);
+      strain = 0.5 * (h + h.transpose() + h.transpose() * h);  // Green's E
+    } else {
+      ElementStress(x, e, &r, &strain, &p);
+      const double tr = strain.trace();
+      w = mu_ * strain.squaredNorm() + 0.5 * lambda_ * tr * tr;
+    }
+    energy += v * g * w;
+    if (has_offset) {  // + offset : strain (its gradient is the offset's stress)
+      const Eigen::Map<const Matrix3d> c(viscous->offset + 9 * static_cast<size_t>(e));
+      energy += v * (c.array() * strain.array()).sum();
+    }
+  }
+  return energy;
+}
+
+ViscousStep FemModel::BeginViscousStep(const TissueState& base, double dt, double* offset) const {
+  const auto& state = static_cast<const FemState&>(base);
+  ViscousStep step;
+  double gamma_sum = 0.0;
+  step.g = 0.0;
+  for (const PronyTerm& t : prony_) {
+    double decay = 0.0, beta = 0.0;
+    PronyFactors(t, dt, &decay, &beta);
+    step.g += t.gamma * beta;
+    gamma_sum += t.gamma;
+  }
+  step.g += 1.0 - gamma_sum;  // γ∞
+  const size_t m = static_cast<size_t>(num_tets()), terms = prony_.size();
+  for (size_t e = 0; e < m; ++e) {
+    Eigen::Map<Matrix3d> out(offset + 9 * e);
+    out.setZero();
+    const Eigen::Map<const Matrix3d> last(state.elastic_last.data() + 9 * e);
+    for (size_t k = 0; k < terms; ++k) {
+      double decay = 0.0, beta = 0.0;
+      PronyFactors(prony_[k], dt, &decay, &beta);
+      out += decay * Eigen::Map<const Matrix3d>(state.history.data() + 9 * (e * terms + k)) -
+             prony_[k].gamma * beta * last;
+    }
+  }
+  step.offset = offset;
+  return step;
+}
+
+void FemModel::EndViscousStep(double dt, TissueState* base) const {
+  auto* state = static_cast<FemState*>(base);
+  const size_t m = static_cast<size_t>(num_tets()), terms = prony_.size();
+  for (size_t e = 0; e < m; ++e) {
+    const Matrix3d now = ElasticStress(state->positions, static_cast<int32_t>(e));
+    Eigen::Map<Matrix3d> last(state->elastic_last.data() + 9 * e);
+    for (size_t k = 0; k < terms; ++k) {
+      double decay = 0.0, beta = 0.0;
+      PronyFactors(prony_[k], dt, &decay, &beta);
+      Eigen::Map<Matrix3d> h(state->history.data() + 9 * (e * terms + k));
+      h = decay * h + prony_[k].gamma * beta * (now - last);  // exact for linear S^e over dt
+    }
+    last = now;
+  }
+}
+
+void FemModel::ElasticForces(const mesh::Points& x, double* forces, double* rotations,
+                             const ViscousStep* viscous) const {
   std::fill(forces, forces + 3 * static_cast<size_t>(num_nodes()), 0.0);
   for (int32_t e = 0; e < num_tets(); ++e) {
     Matrix3d r, strain, p;
-    ElementStress(x, e, &r, &strain, &p);
+    ElementStress(x, e, &r, &strain, &p, viscous);
     if (rotations != nullptr) Eigen::Map<Matrix3d>(rotations + 9 * static_cast<size_t>(e)) = r;
     const double v = elements_.volumes[static_cast<size_t>(e)];
     for (int a = 0; a < 4; ++a) {
@@ -157,11 +296,15 @@ void FemModel::ElasticForces(const mesh::Points& x, double* forces, double* rota
 }
 
 void FemModel::AssembleWarped(const mesh::Points& x, const double* rotations, double scale,
-                              double mass_scale, BlockSparseMatrix* matrix) const {
+                              double mass_scale, BlockSparseMatrix* matrix,
+                              const ViscousStep* viscous) const {
   matrix->SetZero();
+  // A viscous step's effective stiffness is g times the elastic one (hyperelastic: plus the
+  // offset's geometric term, inside ElementTangent).
+  if (viscous != nullptr && kind_ != FemKind::kHyperelastic) scale *= viscous->g;
   for (int32_t e = 0; e < num_tets(); ++e) {
     if (kind_ == FemKind::kHyperelastic) {  // the exact tangent: there is no rotated one
-      const Eigen::Matrix<double, 12, 12> k = ElementTangent(x, e, true);
+      const Eigen::Matrix<double, 12, 12> k = ElementTangent(x, e, true, viscous);
       for (int a = 0; a < 4; ++a) {
         for (int b = 0; b < 4; ++b) {
           matrix->block(matrix->element_block(e, a, b)).noalias() +=
@@ -184,18 +327,26 @@ void FemModel::AssembleWarped(const mesh::Points& x, const double* rotations, do
   }
 }
 
-Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, int32_t e,
-                                                       bool exact) const {
+Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, int32_t e, bool exact,
+                                                       const ViscousStep* viscous) const {
   Eigen::Matrix<double, 12, 12> k;
   Matrix3d r, strain, p;
-  ElementStress(x, e, &r, &strain, &p);
+  ElementStress(x, e, &r, &strain, &p, viscous);
+  // A viscous step scales the elastic response by g and adds a constant offset stress:
+  // hyperelastic dP = g dP^e + dF offset; rotated frame d(R (g σ + offset)).
+  const double g = viscous != nullptr ? viscous->g : 1.0;
+  const bool has_offset = viscous != nullptr && viscous->offset != nullptr;
   if (kind_ == FemKind::kHyperelastic) {
     const Matrix3d f = Matrix3d::Identity() + elements_.DisplacementGradient(x, rest_, e);
     const double v = elements_.volumes[static_cast<size_t>(e)];
     for (int b = 0; b < 4; ++b) {
       const Vector3d gb = elements_.gradients.col(4 * e + b);
       for (int c = 0; c < 3; ++c) {
-        const Matrix3d dp = StressDifferential(material_, f, Vector3d::Unit(c) * gb.transpose());
+        const Matrix3d df = Vector3d::Unit(c) * gb.transpose();
+        Matrix3d dp = g * StressDifferential(material_, f, df);
+        if (has_offset) {
+          dp += df * Eigen::Map<const Matrix3d>(viscous->offset + 9 * static_cast<size_t>(e));
+        }
         for (int a = 0; a < 4; ++a) {
           k.block<3, 1>(3 * a, 3 * b + c) = v * (dp * elements_.gradients.col(4 * e + a));
         }
@@ -206,13 +357,13 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
   if (!exact) {
     for (int a = 0; a < 4; ++a) {
       for (int b = 0; b < 4; ++b) {
-        k.block<3, 3>(3 * a, 3 * b) = r * RestBlock(e, a, b) * r.transpose();
+        k.block<3, 3>(3 * a, 3 * b) = g * (r * RestBlock(e, a, b) * r.transpose());
       }
     }
     return k;
   }
   const double v = elements_.volumes[static_cast<size_t>(e)];
-  const Matrix3d sigma = r.transpose() * p;          // σ(ε)
+  const Matrix3d sigma = r.transpose() * p;          // g σ(ε) + offset
   const Matrix3d s = strain + Matrix3d::Identity();  // Rᵀ F, symmetrised
   // dP for dF: linear, dP = σ(sym dF); corotational, P = R σ(S - I) with dR = R [ω]×, where
   // (tr S I - S) ω = axial(Rᵀ dF - dFᵀ R) and dS = Rᵀ dF - [ω]× S.
@@ -225,7 +376,7 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
       Matrix3d dp;
       if (kind_ == FemKind::kLinear) {
         const Matrix3d de = 0.5 * (df + df.transpose());
-        dp = lambda_ * de.trace() * Matrix3d::Identity() + 2.0 * mu_ * de;
+        dp = g * (lambda_ * de.trace() * Matrix3d::Identity() + 2.0 * mu_ * de);
       } else {
         const Matrix3d w = r.transpose() * df;
         const Vector3d axial(w(2, 1) - w(1, 2), w(0, 2) - w(2, 0), w(1, 0) - w(0, 1));
@@ -233,7 +384,7 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
         const Matrix3d ds = w - Skew(omega) * s;
         const Matrix3d de = 0.5 * (ds + ds.transpose());
         const Matrix3d dsigma = lambda_ * de.trace() * Matrix3d::Identity() + 2.0 * mu_ * de;
-        dp = r * (Skew(omega) * sigma + dsigma);
+        dp = r * (Skew(omega) * sigma + g * dsigma);
       }
       for (int a = 0; a < 4; ++a) {
         k.block<3, 1>(3 * a, 3 * b + c) = v * (dp * elements_.gradients.col(4 * e + a));
@@ -316,11 +467,15 @@ void FemModel::Advance(const StepInputs& inputs, TissueState* base) const {
   const double dt = inputs.dt;
   const auto n = static_cast<size_t>(num_nodes());
   const double alpha = rayleigh_mass_, beta = rayleigh_stiffness_;
+  // QLV: this step's stress is g S^e + offset (ViscousStep); elastic models skip it.
+  ViscousStep viscous;
+  const ViscousStep* const visc = prony_.empty() ? nullptr : &viscous;
+  if (visc != nullptr) viscous = BeginViscousStep(*state, dt, state->offset.data());
   // f(x) and the rotations, then A = (1 + dt α) M + (dt² + dt β) K.
-  ElasticForces(state->positions, state->forces.data(), state->rotations.data());
+  ElasticForces(state->positions, state->forces.data(), state->rotations.data(), visc);
   const double k_scale = dt * dt + dt * beta;
   const double m_scale = 1.0 + dt * alpha;
-  AssembleWarped(state->positions, state->rotations.data(), k_scale, m_scale, &state->matrix);
+  AssembleWarped(state->positions, state->rotations.data(), k_scale, m_scale, &state->matrix, visc);
   // K v = (A v - m_scale M v) / k_scale (before the grasps join A: they have no damping).
   double* const kv = state->temp.data();
   const double* const v = state->velocities.data();
@@ -395,9 +550,29 @@ void FemModel::Advance(const StepInputs& inputs, TissueState* base) const {
   state->velocities += state->dv;
   state->positions += dt * state->velocities;
   ApplyFixedAndPrescribed(inputs, state);
+  if (visc != nullptr) EndViscousStep(dt, state);  // a rejected step restores h (RestoreGood)
 }
 
 StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state) const {
+  return SolveStaticImpl(loads, state, nullptr);
+}
+
+StaticResult FemModel::SolveQuasiStatic(const StaticLoads& loads, double dt,
+                                        TissueState* state) const {
+  if (!(dt > 0.0) || !std::isfinite(dt)) Refuse("quasi-static dt [s] must be > 0");
+  if (prony_.empty()) return SolveStaticImpl(loads, state, nullptr);
+  std::vector<double> offset(9 * static_cast<size_t>(num_tets()));
+  const ViscousStep viscous = BeginViscousStep(*state, dt, offset.data());
+  StaticResult result = SolveStaticImpl(loads, state, &viscous);
+  if (result.converged) {
+    EndViscousStep(dt, state);
+    state->time += dt;
+  }
+  return result;
+}
+
+StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* state,
+                                       const ViscousStep* viscous) const {
   const auto n = static_cast<size_t>(num_nodes());
   if (loads.external_forces != nullptr &&
       (loads.external_forces->cols() != num_nodes() || !loads.external_forces->allFinite())) {
@@ -453,7 +628,7 @@ StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state)
   bool analysed = false;
   // Free-DOF norm of r = f(x) + scale · load.
   const auto residual = [&](double scale, Eigen::VectorXd* r) {
-    ElasticForces(state->positions, forces.data(), nullptr);
+    ElasticForces(state->positions, forces.data(), nullptr, viscous);
     r->setZero(num_dofs);
     double load_norm2 = 0.0;
     for (size_t k = 0; k < 3 * n; ++k) {
@@ -465,7 +640,7 @@ StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state)
     return std::sqrt(load_norm2);
   };
   const auto potential = [&](double scale) {
-    double value = Energy(*state, Eigen::Vector3d::Zero()).elastic;
+    double value = ElasticEnergy(state->positions, viscous);
     for (Eigen::Index k = 0; k < load.size(); ++k) {
       value -= scale * load.data()[k] * (state->positions.data()[k] - rest_.data()[k]);
     }
@@ -482,7 +657,7 @@ StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state)
       tangent.SetZero();
       for (int32_t e = 0; e < num_tets(); ++e) {
         const Eigen::Matrix<double, 12, 12> ke =
-            ElementTangent(attempt == 2 ? rest_ : state->positions, e, attempt != 1);
+            ElementTangent(attempt == 2 ? rest_ : state->positions, e, attempt != 1, viscous);
         for (int a = 0; a < 4; ++a) {
           for (int b = 0; b < 4; ++b) {
             tangent.block(tangent.element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
@@ -593,7 +768,7 @@ StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state)
     if (!result.converged) break;
   }
   // Reactions: what the supports must supply, -(f(x) + load) on the held DOFs.
-  ElasticForces(state->positions, forces.data(), nullptr);
+  ElasticForces(state->positions, forces.data(), nullptr, viscous);
   result.reactions = mesh::Points::Zero(3, num_nodes());
   for (size_t k = 0; k < 3 * n; ++k) {
     if (dof[k] < 0) result.reactions.data()[k] = -(forces.data()[k] + load.data()[k]);

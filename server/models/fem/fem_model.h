@@ -43,14 +43,25 @@ enum class FemKind {
   kHyperelastic,  // total Lagrangian, large strain: FemParameters::hyperelastic (seed 000)
 };
 
+struct PronyTerm {
+  double gamma = 0.0;  // γ_k [-]
+  double tau = 1.0;    // τ_k [s]
+};
+inline constexpr size_t kMaxPronyTerms = 4;
+// Seed 000 table 1 (Nava et al. 2008): γ1 = 0.5054, τ1 = 0.5784 s, γ2 = 0.1485, τ2 = 6.8863 s.
+std::vector<PronyTerm> LiverNava2008Prony();
+
 struct FemParameters {
   FemKind kind = FemKind::kCorotational;
   double youngs_modulus = 0.0;  // E [Pa], > 0 (linear and corotational)
   double poisson_ratio = 0.45;  // ν [-], in (-1, 0.5); soft tissue is nearly incompressible
   HyperelasticMaterial hyperelastic = LiverNava2008();  // kHyperelastic only
   double density = 1000.0;                              // ρ [kg/m³], > 0
-  double rayleigh_mass = 0.0;                           // α [1/s], >= 0: C = α M + β K
-  double rayleigh_stiffness = 0.0;                      // β [s], >= 0
+  // Quasi-linear viscoelasticity (Fung; SPEC §4.4): G(t) = γ∞ + Σ_k γ_k e^{-t/τ_k}, G(0) = 1,
+  // so γ∞ = 1 - Σ γ_k (>= 0); γ_k >= 0, τ_k > 0 [s]; at most kMaxPronyTerms. Empty: elastic.
+  std::vector<PronyTerm> prony;
+  double rayleigh_mass = 0.0;       // α [1/s], >= 0: C = α M + β K
+  double rayleigh_stiffness = 0.0;  // β [s], >= 0
   // Step: CG stops at |r| <= cg_tolerance |b| or after cg_max_iterations (> 0).
   double cg_tolerance = 1e-6;
   int cg_max_iterations = 500;
@@ -58,6 +69,17 @@ struct FemParameters {
   // SOFA's CPU benchmark scene does with 20).
   bool cg_fixed_iterations = false;
   double speed_limit = 100.0;  // [m/s], > 0: a faster node marks a diverged step
+};
+
+// One time step's viscoelastic context (QLV in recursive form, Simo 1987): with the elastic
+// stress S^e (hyperelastic: second Piola–Kirchhoff, P = F S; linear and corotational: the
+// rotated-frame stress σ, P = R S) and the internal variables h_k of the last step,
+//   S(t + dt) = g S^e(F) + offset,   g = γ∞ + Σ γ_k β_k,   β_k = (τ_k / dt)(1 - e^{-dt/τ_k}),
+//   offset = Σ_k (e^{-dt/τ_k} h_k - γ_k β_k S^e_last),
+// exact for a strain history linear over the step. Elastic: g = 1, no offset.
+struct ViscousStep {
+  double g = 1.0;
+  const double* offset = nullptr;  // 9 × num_tets (3 × 3 column-major), or null
 };
 
 // One coordinate of one node held at a value (a symmetry plane, a roller): position(axis, node)
@@ -117,11 +139,18 @@ class FemModel final : public TissueModel {
   // factorisation per Newton iteration): not for the real-time path. Throws
   // std::invalid_argument on bad loads (sizes, indices, NaN).
   StaticResult SolveStatic(const StaticLoads& loads, TissueState* state) const;
+  // Quasi-static viscoelastic evolution (no inertia): equilibrium at t + dt under `loads` (their
+  // full values at t + dt; load_steps ramps within the step) with the state's QLV internal
+  // variables, which are then advanced to t + dt. A creep or relaxation test is a sequence of
+  // these. Allocates.
+  StaticResult SolveQuasiStatic(const StaticLoads& loads, double dt, TissueState* state) const;
 
   // The element tangent -∂f_e/∂x_e (12 × 12, corners a = 0..3 × xyz) of element e at positions
   // x: exact (with the derivative of R) or warped (R K_e Rᵀ; the hyperelastic model has only
   // the exact one). For tests and the static solver.
-  Eigen::Matrix<double, 12, 12> ElementTangent(const mesh::Points& x, int32_t e, bool exact) const;
+  Eigen::Matrix<double, 12, 12> ElementTangent(const mesh::Points& x, int32_t e, bool exact,
+                                               const ViscousStep* viscous = nullptr) const;
+  size_t num_prony_terms() const { return prony_.size(); }
 
   // The relative residual |b - A Δv| / |b| CG reached in the state's last step.
   double LastSolverResidual(const TissueState& state) const;
@@ -140,15 +169,29 @@ class FemModel final : public TissueModel {
   // Element e's rotation at x (identity for the linear model), its strain ε (symmetric) and
   // the first Piola–Kirchhoff stress P [Pa].
   void ElementStress(const mesh::Points& x, int32_t e, Eigen::Matrix3d* rotation,
-                     Eigen::Matrix3d* strain, Eigen::Matrix3d* stress) const;
+                     Eigen::Matrix3d* strain, Eigen::Matrix3d* stress,
+                     const ViscousStep* viscous = nullptr) const;
   // forces (3 × num_nodes) = elastic forces at x; also stores the element rotations (9 ×
   // num_tets) when `rotations` is given.
-  void ElasticForces(const mesh::Points& x, double* forces, double* rotations) const;
+  void ElasticForces(const mesh::Points& x, double* forces, double* rotations,
+                     const ViscousStep* viscous = nullptr) const;
+  // The elastic energy at x; with a viscous context, the potential whose gradient is the
+  // viscous step's forces (hyperelastic: Σ V (g W + offset : E)).
+  double ElasticEnergy(const mesh::Points& x, const ViscousStep* viscous) const;
+  // The elastic stress S^e of element e at x (see ViscousStep), 3 × 3.
+  Eigen::Matrix3d ElasticStress(const mesh::Points& x, int32_t e) const;
+  // The viscous context for a step of dt from the state's internal variables (into `offset`,
+  // 9 × num_tets), and the update of the internal variables once the step is accepted.
+  ViscousStep BeginViscousStep(const TissueState& state, double dt, double* offset) const;
+  void EndViscousStep(double dt, TissueState* state) const;
+  StaticResult SolveStaticImpl(const StaticLoads& loads, TissueState* state,
+                               const ViscousStep* viscous) const;
   // Assembles Σ_e R_e K_e R_eᵀ (rotations 9 × num_tets, or identity for the linear model; the
   // exact tangent at x for the hyperelastic one) scaled by `scale` into `matrix` (zeroed
   // first), then adds mass_scale · M on the diagonal.
   void AssembleWarped(const mesh::Points& x, const double* rotations, double scale,
-                      double mass_scale, BlockSparseMatrix* matrix) const;
+                      double mass_scale, BlockSparseMatrix* matrix,
+                      const ViscousStep* viscous = nullptr) const;
   // The undeformed element stiffness block K_ab = V (λ ∇N_a ∇N_bᵀ + μ ∇N_b ∇N_aᵀ + μ ∇N_a·∇N_b I).
   Eigen::Matrix3d RestBlock(int32_t e, int a, int b) const;
 
@@ -158,6 +201,7 @@ class FemModel final : public TissueModel {
   std::vector<double> mass_;   // [kg]
   FemKind kind_ = FemKind::kCorotational;
   HyperelasticMaterial material_;
+  std::vector<PronyTerm> prony_;
   double lambda_ = 0.0, mu_ = 0.0;  // Lamé [Pa]
   double rayleigh_mass_ = 0.0, rayleigh_stiffness_ = 0.0;
   double cg_tolerance_ = 1e-6;

@@ -197,6 +197,110 @@ TEST(FemHyperelastic, UniaxialStretchMatchesTheIncompressibleCurve) {
   }
 }
 
+// The uniaxial cube of the test above, held at stretch λ (or loaded by a nominal stress), as a
+// list of component constraints; `pulled` gets the face x = 1.
+std::vector<ComponentConstraint> UniaxialSupports(const mesh::TetMesh& cube, double stretch,
+                                                  bool pull, std::vector<int32_t>* pulled) {
+  std::vector<ComponentConstraint> held;
+  for (int32_t i = 0; i < static_cast<int32_t>(cube.vertices.cols()); ++i) {
+    for (int axis = 0; axis < 3; ++axis) {
+      if (cube.vertices(axis, i) < 1e-9) held.push_back({i, axis, 0.0});
+    }
+    if (cube.vertices(0, i) > 1.0 - 1e-9) {
+      if (pull) held.push_back({i, 0, stretch});
+      pulled->push_back(i);
+    }
+  }
+  return held;
+}
+
+// Fung's QLV with seed 000's Prony series: after a step stretch held constant, the stress relaxes
+// exactly as G(t) = γ∞ + Σ γ_k e^{-t/τ_k} times the instantaneous elastic stress.
+TEST(FemViscoelastic, RelaxationAfterAStepStrainFollowsTheProny) {
+  const mesh::TetMesh cube = mesh_gen::BoxGridTets(3, 3, 3, Vector3d::Zero(), Vector3d::Ones());
+  FemParameters p = Material(FemKind::kHyperelastic);
+  p.prony = LiverNava2008Prony();
+  const auto model = FemModel::FromTetMesh(cube, p);
+  std::vector<int32_t> pulled;
+  const std::vector<ComponentConstraint> held = UniaxialSupports(cube, 1.1, true, &pulled);
+  StaticLoads loads;
+  loads.components = held;
+  auto state = model->MakeState();
+  const auto face_force = [&](const StaticResult& r) {
+    double force = 0.0;
+    for (const int32_t i : pulled) force += r.reactions(0, i);
+    return force;
+  };
+  const StaticResult jump = model->SolveQuasiStatic(loads, 1e-6, state.get());  // the step
+  ASSERT_TRUE(jump.converged);
+  const double instantaneous = face_force(jump);
+  ASSERT_GT(instantaneous, 0.0);
+  double t = 0.0;
+  for (int step = 0; step < 200; ++step) {
+    const StaticResult hold = model->SolveQuasiStatic(loads, 0.1, state.get());
+    ASSERT_TRUE(hold.converged) << step;
+    t += 0.1;
+    double g = 1.0;
+    for (const PronyTerm& term : p.prony) g += term.gamma * (std::exp(-t / term.tau) - 1.0);
+    if (step % 20 == 19) {
+      EXPECT_NEAR(face_force(hold), g * instantaneous, 0.01 * g * instantaneous) << t;
+    }
+  }
+}
+
+// Under a step load the strain creeps with the creep compliance of the Prony series: for
+// G(s) (Laplace) = γ∞/s + Σ γ_k/(s + 1/τ_k), J(s) = 1/(s² G(s)) has poles at 0 and at the roots
+// r_1, r_2 of s G(s) (two retardation times), so J(t) = 1/γ∞ + Σ_j R_j e^{r_j t}. At small strain
+// the elastic response is linear, so u(t) = J(t) u(0⁺).
+TEST(FemViscoelastic, CreepUnderAStepLoadFollowsTheCreepCompliance) {
+  const mesh::TetMesh cube = mesh_gen::BoxGridTets(3, 3, 3, Vector3d::Zero(), Vector3d::Ones());
+  FemParameters p = Material(FemKind::kHyperelastic);
+  p.prony = LiverNava2008Prony();
+  const auto model = FemModel::FromTetMesh(cube, p);
+  std::vector<int32_t> pulled;
+  const std::vector<ComponentConstraint> held = UniaxialSupports(cube, 1.0, false, &pulled);
+  mesh::Points forces = mesh::Points::Zero(3, model->num_nodes());
+  for (const int32_t i : pulled) {  // 1 Pa nominal on the unit face, by tributary area
+    double w = 1.0;
+    for (int axis = 1; axis < 3; ++axis) {
+      const double c = cube.vertices(axis, i);
+      if (c < 1e-9 || c > 1.0 - 1e-9) w *= 0.5;
+    }
+    forces(0, i) = w / 4.0;  // 2 × 2 cells on the face
+  }
+  StaticLoads loads;
+  loads.components = held;
+  loads.external_forces = &forces;
+  loads.tolerance = 1e-12;
+  auto state = model->MakeState();
+  ASSERT_TRUE(model->SolveQuasiStatic(loads, 1e-6, state.get()).converged);
+  const double u0 = state->positions.row(0).maxCoeff() - 1.0;
+  ASSERT_GT(u0, 0.0);
+  // Roots of s G(s) (times Π (s + a_k)): γ∞ (s + a1)(s + a2) + γ1 s (s + a2) + γ2 s (s + a1).
+  const double g1 = p.prony[0].gamma, g2 = p.prony[1].gamma, ginf = 1.0 - g1 - g2;
+  const double a1 = 1.0 / p.prony[0].tau, a2 = 1.0 / p.prony[1].tau;
+  const double qa = ginf + g1 + g2, qb = ginf * (a1 + a2) + g1 * a2 + g2 * a1, qc = ginf * a1 * a2;
+  const double disc = std::sqrt(qb * qb - 4.0 * qa * qc);
+  const double r1 = (-qb + disc) / (2.0 * qa), r2 = (-qb - disc) / (2.0 * qa);
+  const auto creep =
+      [&](double time) {  // J(t) = 1/γ∞ + Σ residues of (s+a1)(s+a2)/(s qa (s-r1)(s-r2))
+        const double res1 = (r1 + a1) * (r1 + a2) / (qa * r1 * (r1 - r2));
+        const double res2 = (r2 + a1) * (r2 + a2) / (qa * r2 * (r2 - r1));
+        return a1 * a2 / (qa * r1 * r2) + res1 * std::exp(r1 * time) + res2 * std::exp(r2 * time);
+      };
+  EXPECT_NEAR(creep(0.0), 1.0, 1e-12);
+  EXPECT_NEAR(creep(1e9), 1.0 / ginf, 1e-9);
+  double t = 0.0;
+  for (int step = 0; step < 200; ++step) {
+    ASSERT_TRUE(model->SolveQuasiStatic(loads, 0.1, state.get()).converged) << step;
+    t += 0.1;
+    const double u = state->positions.row(0).maxCoeff() - 1.0;
+    if (step % 20 == 19) {
+      EXPECT_NEAR(u / u0, creep(t), 0.01 * creep(t)) << t;
+    }
+  }
+}
+
 TEST(FemCorotational, IsInvariantUnderRigidRotation) {
   const auto model = FemModel::FromTetMesh(SmallBox(), Material(FemKind::kCorotational));
   auto state = model->MakeState();
@@ -365,7 +469,9 @@ TEST(FemDynamic, DampedStepsSettleOnTheStaticSolution) {
 }
 
 TEST(FemDynamic, StepsAllocateNothing) {
-  const auto model = FemModel::FromTetMesh(SmallBox(), Material(FemKind::kCorotational));
+  FemParameters p = Material(FemKind::kCorotational);
+  p.prony = LiverNava2008Prony();  // with the QLV internal variables
+  const auto model = FemModel::FromTetMesh(SmallBox(), p);
   auto state = model->MakeState();
   StepInputs inputs;
   inputs.gravity = Vector3d(0.0, 0.0, -9.81);
