@@ -24,8 +24,9 @@ enum class MassSpringIntegrator {
   // Seed 002 eq. 4–5: v += dt f/m, x += dt v. Cheap; stable while dt < 2/ω_max.
   kSymplecticEuler,
   // Linearised backward Euler (Baraff & Witkin 1998): (M + dt C + dt² K) Δv = dt (f - dt K v),
-  // solved by conjugate gradients preconditioned with a symmetric block Gauss–Seidel sweep,
-  // matrix-free over the springs, warm-started from the previous step's Δv. Stable
+  // solved by conjugate gradients preconditioned with a multicolour symmetric block
+  // Gauss–Seidel sweep (8 independent nodes per AVX-512 register; mass_spring_implicit.cc),
+  // matrix-free over the springs, started from Δv extrapolated from the last two steps. Stable
   // for stiff tissue at 1 ms. K keeps only the non-negative transverse stiffness
   // k (1 - l0/l)₊ so the system stays positive definite.
   kImplicitEuler,
@@ -139,8 +140,44 @@ class MassSpringModel final : public TissueModel {
   std::vector<double> anchor_damping_;  // d_i = 2 ζ √(k_s m_i) [N s/m], one per anchored node
   double anchor_stiffness_ = 0.0;       // k_s [N/m]
   // --- explicit-step data (mass_spring_model.cc) ---
+  // The springs in the explicit pass's own layout (SELL-8): nodes go in slices of 8 consecutive
+  // nodes, one SIMD lane each; each spring belongs to the lane of its end in the earlier slice
+  // (either end when both share one) and sits in one column of its slice (8 lanes, at most one
+  // spring each).
+  void BuildExplicitLayout();
+  std::vector<int32_t> slice_column_start_;  // num_slices + 1: columns of each slice
+  std::vector<int32_t> column_other3_;       // 8 per column: 3 × the lane's other node (0: empty)
+  std::vector<double> column_rest_;          // [m], 8 per column: l0 (0: empty)
+  std::vector<uint8_t> column_lanes_;        // 1 per column: bit l set when lane l has a spring
+  std::vector<uint8_t> column_consecutive_;  // 1 per column: 1 if its other nodes are b..b + 7
+  std::vector<int32_t> spring_slot_;         // num_springs: 8 × column + lane of each spring
+  // Each column's forces go to a ring (MassSpringState::column_forces) of ring_columns_ columns
+  // (24 doubles each: x of the 8 lanes, then y, then z), whence the other nodes' slices gather
+  // them: incoming column k of a slice holds each lane's k-th spring that ends on it.
+  int32_t ring_columns_ = 1;                  // a power of two
+  std::vector<int32_t> slice_incoming_start_;  // num_slices + 1: incoming columns of each slice
+  std::vector<int32_t> incoming_slot_;         // 8 per incoming column: ring index of the x
+  std::vector<uint8_t> incoming_lanes_;        // 1 per incoming column: lanes with a spring
+  std::vector<uint8_t> incoming_rotated_;      // 1 per incoming column: 1 if two rotated columns
   // --- end of explicit-step data ---
   // --- implicit-step data (mass_spring_implicit.cc) ---
+  // Multicolour layout of the Gauss-Seidel preconditioner: nodes grouped by colour (no spring
+  // joins two nodes of one colour), each colour padded to whole groups of 8 lanes. A lane is a
+  // node's index in the solver's vectors (3 blocks x, y, z of implicit_padded_ doubles each).
+  size_t implicit_padded_ = 0;                  // P, a multiple of 8
+  std::vector<int32_t> implicit_node_;          // P: the node in each lane, -1 on padding
+  std::vector<int32_t> implicit_lane_;          // num_nodes: each node's lane
+  std::vector<int32_t> implicit_colour_start_;  // colours + 1: first group of each colour
+  // Per group (of 8 lanes): rows of 8 slots, one spring per lane and row, first the springs to
+  // lower colours (implicit_lower_rows_), then those to higher ones; groups + 1.
+  std::vector<int32_t> implicit_row_start_;
+  std::vector<int32_t> implicit_lower_rows_;  // groups
+  std::vector<int32_t> implicit_neighbour_;   // rows × 8: the other node's lane (own on padding)
+  std::vector<int32_t> implicit_spring_;      // rows × 8: the spring, num_springs on padding
+  std::vector<double> implicit_sign_;         // rows × 8: +1 if the lane is the spring's i, -1 j
+  std::vector<double> implicit_mass_;         // P: mass [kg] (0 on padding)
+  std::vector<double> implicit_real_;         // P: 1 on a node's lane, 0 on padding
+  std::vector<uint8_t> implicit_massless_group_;  // groups: 1 if a lane's node has no mass
   // --- end of implicit-step data ---
   MassSpringIntegrator integrator_ = MassSpringIntegrator::kSymplecticEuler;
   double cg_tolerance_ = 1e-8;

@@ -24,17 +24,26 @@ class MassSpringState final : public TissueState {
   // yet (3 × num_nodes); zero between steps.
   mesh::Points pending;
   // --- explicit-step scratch (mass_spring_model.cc) ---
+  // stiffness and damping in the explicit layout (16 per column: k of the 8 lanes [N/m], then d
+  // [N s/m]; 0 in empty lanes). MakeState and Cut keep them equal to the two vectors above.
+  std::vector<double> column_stiffness_damping;
+  // The ring of the latest columns' spring forces [N] (24 per column: x, y, z of the 8 lanes).
+  // Scratch, also of InternalForces on a const state.
+  mutable std::vector<double> column_forces;
   // --- end of explicit-step scratch ---
-  // Implicit Euler only.
-  mesh::Points spring_direction;          // u, 3 × num_springs
-  std::vector<double> spring_transverse;  // (1 - l0/l)₊, num_springs
-  std::vector<uint8_t> constrained;       // fixed or prescribed this step, num_nodes
-  mesh::Points rhs, dv, residual, preconditioned, search, product;  // 3 × num_nodes each
-  Eigen::Matrix<double, 9, Eigen::Dynamic> inverse_diagonal;        // 3×3 blocks, num_nodes
-  // The diagonal blocks of A on massless nodes (xx, xy, xz, yy, yz, zz; zero when constrained).
-  Eigen::Matrix<double, 6, Eigen::Dynamic> diagonal;
-  mesh::Points preconditioned_product;  // A z, 3 × num_nodes
   // --- implicit-step scratch (mass_spring_implicit.cc) ---
+  // Per spring and one zero dummy spring past them (records of 8): w_s (x, y, z), a_s, K_s (v_i -
+  // v_j) (x, y, z) and 0, the step's linearisation.
+  std::vector<double> implicit_springs;
+  std::vector<double> implicit_gather;  // 4 × P: records (x, y, z, 0) the sweeps read
+  std::vector<double> implicit_rows;  // per row of 8 slots: w_x[8], w_y[8], w_z[8], a[8]
+  // Per lane (see MassSpringModel::implicit_node_): the diagonal blocks of A and their inverses
+  // (xx, xy, xz, yy, yz, zz; 6 × P), 1 on free lanes and 0 on held ones or padding (P), and the
+  // solver's vectors (3 × P each: x block, y block, z block).
+  std::vector<double> implicit_diagonal, implicit_inverse, implicit_keep;
+  std::vector<double> implicit_rhs, implicit_dv, implicit_residual, implicit_z, implicit_search,
+      implicit_product, implicit_az, implicit_dy;
+  std::vector<double> implicit_dv_previous;  // the Δv of the step before the last, 3 × P
   // --- end of implicit-step scratch ---
 };
 

@@ -3,7 +3,10 @@
 #include <algorithm>
 #include <cmath>
 
-#if defined(__SSE2__)
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#define SOMASIM_CHECK_AVX512 1
+#elif defined(__SSE2__)
 #include <emmintrin.h>
 #endif
 
@@ -16,7 +19,8 @@ struct FlatCheck {
 };
 
 // x − x is 0 for every finite x and NaN for NaN and ±∞. SSE2 (the x86-64 baseline) checks two
-// doubles per instruction; other targets take the scalar loop.
+// doubles per instruction; other targets take the scalar loop; CPUs with AVX-512 take
+// CheckFlatAvx512 (same answers).
 FlatCheck CheckFlat(const double* __restrict x, const double* __restrict v, size_t count,
                     double component_limit) {
   size_t k = 0;
@@ -43,6 +47,46 @@ FlatCheck CheckFlat(const double* __restrict x, const double* __restrict v, size
     fast |= static_cast<int>(std::abs(v[k]) > component_limit);
   }
   return {non_finite != 0, fast != 0};
+}
+
+#ifdef SOMASIM_CHECK_AVX512
+// CheckFlat, eight doubles per instruction: the check runs after every step over every node,
+// which at 10 kHz on a 5400-node organ is a tenth of a mass-spring step with SSE2.
+__attribute__((target("avx512f"))) FlatCheck CheckFlatAvx512(const double* __restrict x,
+                                                             const double* __restrict v,
+                                                             size_t count,
+                                                             double component_limit) {
+  size_t k = 0;
+  __mmask8 bad = 0, above = 0;
+  const __m512d limit = _mm512_set1_pd(component_limit);
+  for (; k + 8 <= count; k += 8) {
+    const __m512d xv = _mm512_loadu_pd(x + k);
+    const __m512d vv = _mm512_loadu_pd(v + k);
+    bad |= _mm512_cmp_pd_mask(_mm512_sub_pd(xv, xv), _mm512_sub_pd(vv, vv), _CMP_UNORD_Q);
+    above |= _mm512_cmp_pd_mask(_mm512_abs_pd(vv), limit, _CMP_GT_OQ);
+  }
+  FlatCheck result{bad != 0, above != 0};
+  for (; k < count; ++k) {
+    result.non_finite = result.non_finite || !(x[k] - x[k] == 0.0) || !(v[k] - v[k] == 0.0);
+    result.maybe_too_fast = result.maybe_too_fast || std::abs(v[k]) > component_limit;
+  }
+  return result;
+}
+
+bool CpuHasAvx512() {
+  static const bool has = [] {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx512f") != 0;
+  }();
+  return has;
+}
+#endif
+
+FlatCheck CheckState(const double* x, const double* v, size_t count, double component_limit) {
+#ifdef SOMASIM_CHECK_AVX512
+  if (CpuHasAvx512()) return CheckFlatAvx512(x, v, count, component_limit);
+#endif
+  return CheckFlat(x, v, count, component_limit);
 }
 
 }  // namespace
@@ -103,7 +147,7 @@ StepStatus TissueModel::Step(const StepInputs& inputs, TissueState* state) const
   const auto count = static_cast<size_t>(3 * static_cast<Eigen::Index>(n));
   const double* x = state->positions.data();
   const double* v = state->velocities.data();
-  const FlatCheck flat = CheckFlat(x, v, count, speed_limit_ / std::sqrt(3.0));
+  const FlatCheck flat = CheckState(x, v, count, speed_limit_ / std::sqrt(3.0));
   const bool non_finite = flat.non_finite;
   bool too_fast = false;
   if (flat.maybe_too_fast && !non_finite) {
