@@ -154,7 +154,7 @@ class MassSpringModel final : public TissueModel {
   // Each column's forces go to a ring (MassSpringState::column_forces) of ring_columns_ columns
   // (24 doubles each: x of the 8 lanes, then y, then z), whence the other nodes' slices gather
   // them: incoming column k of a slice holds each lane's k-th spring that ends on it.
-  int32_t ring_columns_ = 1;                  // a power of two
+  int32_t ring_columns_ = 1;                   // a power of two
   std::vector<int32_t> slice_incoming_start_;  // num_slices + 1: incoming columns of each slice
   std::vector<int32_t> incoming_slot_;         // 8 per incoming column: ring index of the x
   std::vector<uint8_t> incoming_lanes_;        // 1 per incoming column: lanes with a spring
