@@ -91,8 +91,10 @@ struct SweepArrays {
 };
 
 // Projects slots [begin, end) in order onto the node records x (4 × n); returns the largest
-// relative residual |C + α̃ λ|/a seen before each projection (0 unless kResidual).
-template <bool kResidual>
+// relative residual |C + α̃ λ|/a seen before each projection (0 unless kResidual). kFirst: the
+// first sweep of a step, where every λ is 0 (so neither α̃ nor λ is read, and λ is written
+// rather than updated: the step needs no zeroing pass over λ).
+template <bool kResidual, bool kFirst>
 double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __restrict x) {
   double residual = 0.0;
   for (size_t e = begin; e < end; ++e) {
@@ -103,11 +105,18 @@ double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __r
     const double dz = xj[2] - xi[2];
     const double l2 = dx * dx + dy * dy + dz * dz;
     const double length = std::sqrt(l2);
-    const double t = (length - s.rest[e]) + s.alpha[e] * s.lambda[e];
+    const double t = kFirst ? length - s.rest[e] : (length - s.rest[e]) + s.alpha[e] * s.lambda[e];
     if constexpr (kResidual) residual = std::max(residual, std::abs(t) * s.inverse_rest[e]);
-    if (!(l2 > 0.0)) continue;
+    if (!(l2 > 0.0)) {
+      if constexpr (kFirst) s.lambda[e] = 0.0;
+      continue;
+    }
     const double dlambda = -t * s.gain[e];
-    s.lambda[e] += dlambda;
+    if constexpr (kFirst) {
+      s.lambda[e] = dlambda;
+    } else {
+      s.lambda[e] += dlambda;
+    }
     const double f = dlambda / length;
     const double fi = xi[3] * f;
     const double fj = xj[3] * f;
@@ -175,29 +184,33 @@ __attribute__((target("avx512f"))) inline void StoreRecords(const Lanes& r, doub
 }
 
 // The projection of 8 slots from their loaded records (see SweepArrays): updates i and j in
-// place, stores λ + Δλ, and folds |t|/a into worst when kResidual.
-template <bool kResidual>
+// place, stores λ + Δλ (Δλ alone when kFirst: λ = 0), and folds |t|/a into worst when
+// kResidual.
+template <bool kResidual, bool kFirst>
 __attribute__((target("avx512f"), always_inline)) inline void ProjectLanes(const SweepArrays& s,
                                                                            size_t e, Lanes* i,
                                                                            Lanes* j,
                                                                            __m512d* worst) {
   const __m512d zero = _mm512_setzero_pd();
-  const __m512d three_halves = _mm512_set1_pd(1.5);
+  const __m512d one = _mm512_set1_pd(1.0);
   const __m512d half = _mm512_set1_pd(0.5);
   const __m512d dx = _mm512_sub_pd(j->x, i->x);
   const __m512d dy = _mm512_sub_pd(j->y, i->y);
   const __m512d dz = _mm512_sub_pd(j->z, i->z);
   const __m512d l2 = _mm512_fmadd_pd(dz, dz, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dx, dx)));
   const __mmask8 ok = _mm512_cmp_pd_mask(l2, zero, _CMP_GT_OQ);
-  // 1/l: y ← y (3/2 - l²/2 y²), twice.
-  const __m512d h = _mm512_mul_pd(half, l2);
+  // 1/l from y0 = rsqrt14(l²) (relative error < 2^-14) by one third-order correction: with
+  // r = 1 - l² y0², 1/l = y0 (1 - r)^(-1/2) = y0 (1 + r/2 + 3r²/8 + 5r³/16 + O(r⁴)), O(r⁴) <
+  // 2^-56: as exact as two Newton steps, in 6 operations instead of 7 and a shorter chain.
   __m512d y = _mm512_maskz_rsqrt14_pd(ok, l2);
-  y = _mm512_mul_pd(y, _mm512_fnmadd_pd(h, _mm512_mul_pd(y, y), three_halves));
-  y = _mm512_mul_pd(y, _mm512_fnmadd_pd(h, _mm512_mul_pd(y, y), three_halves));
+  const __m512d r = _mm512_fnmadd_pd(l2, _mm512_mul_pd(y, y), one);
+  const __m512d series =
+      _mm512_fmadd_pd(r, _mm512_fmadd_pd(r, _mm512_set1_pd(0.3125), _mm512_set1_pd(0.375)), half);
+  y = _mm512_fmadd_pd(_mm512_mul_pd(y, r), series, y);
   const __m512d length = _mm512_mul_pd(l2, y);  // 0 where l = 0
-  const __m512d lambda = _mm512_loadu_pd(s.lambda + e);
-  const __m512d t = _mm512_fmadd_pd(_mm512_loadu_pd(s.alpha + e), lambda,
-                                    _mm512_sub_pd(length, _mm512_loadu_pd(s.rest + e)));
+  const __m512d lambda = kFirst ? zero : _mm512_loadu_pd(s.lambda + e);
+  const __m512d c = _mm512_sub_pd(length, _mm512_loadu_pd(s.rest + e));
+  const __m512d t = kFirst ? c : _mm512_fmadd_pd(_mm512_loadu_pd(s.alpha + e), lambda, c);
   if constexpr (kResidual) {
     const __m512i sign_mask = _mm512_set1_epi64(INT64_MAX);
     const __m512d relative =
@@ -205,9 +218,9 @@ __attribute__((target("avx512f"), always_inline)) inline void ProjectLanes(const
                       _mm512_loadu_pd(s.inverse_rest + e));
     *worst = _mm512_mask_max_pd(*worst, 0xFF, *worst, relative);
   }
-  const __m512d dlambda =
-      _mm512_maskz_mul_pd(ok, _mm512_sub_pd(zero, t), _mm512_loadu_pd(s.gain + e));
-  _mm512_storeu_pd(s.lambda + e, _mm512_add_pd(lambda, dlambda));
+  // -(t gain) + 0, exactly the scalar -t · gain.
+  const __m512d dlambda = _mm512_maskz_fnmadd_pd(ok, t, _mm512_loadu_pd(s.gain + e), zero);
+  _mm512_storeu_pd(s.lambda + e, kFirst ? dlambda : _mm512_add_pd(lambda, dlambda));
   const __m512d f = _mm512_mul_pd(dlambda, y);  // 0 where l = 0: those lanes do not move
   const __m512d fi = _mm512_mul_pd(i->w, f);
   const __m512d fj = _mm512_mul_pd(j->w, f);
@@ -222,9 +235,9 @@ __attribute__((target("avx512f"), always_inline)) inline void ProjectLanes(const
 // ProjectScalar, 16 then 8 slots at a time: valid only when no two slots of [begin, end) share a
 // node (one colour), so that the order within a vector does not matter; two independent groups
 // of 8 per iteration let their latency chains overlap. The last (end - begin) % 8 slots go
-// through ProjectScalar. 1/l comes from rsqrt14 and two Newton steps (relative error ~1e-16), so
-// results differ from the scalar sweep by rounding.
-template <bool kResidual>
+// through ProjectScalar. 1/l comes from rsqrt14 and a third-order correction (relative error
+// ~1e-16), so results differ from the scalar sweep by rounding.
+template <bool kResidual, bool kFirst>
 __attribute__((target("avx512f"))) double ProjectAvx512(const SweepArrays& arrays, size_t begin,
                                                         size_t end, double* x) {
   const SweepArrays s = arrays;  // local: the record stores may alias anything
@@ -238,8 +251,8 @@ __attribute__((target("avx512f"))) double ProjectAvx512(const SweepArrays& array
     Lanes j0 = LoadRecords(x, s.j4 + e, low, high);
     Lanes i1 = LoadRecords(x, s.i4 + e + 8, low, high);
     Lanes j1 = LoadRecords(x, s.j4 + e + 8, low, high);
-    ProjectLanes<kResidual>(s, e, &i0, &j0, &worst);
-    ProjectLanes<kResidual>(s, e + 8, &i1, &j1, &worst);
+    ProjectLanes<kResidual, kFirst>(s, e, &i0, &j0, &worst);
+    ProjectLanes<kResidual, kFirst>(s, e + 8, &i1, &j1, &worst);
     StoreRecords(i0, x, s.i4 + e, low, high);
     StoreRecords(j0, x, s.j4 + e, low, high);
     StoreRecords(i1, x, s.i4 + e + 8, low, high);
@@ -248,21 +261,52 @@ __attribute__((target("avx512f"))) double ProjectAvx512(const SweepArrays& array
   if (e + 8 <= end) {
     Lanes i0 = LoadRecords(x, s.i4 + e, low, high);
     Lanes j0 = LoadRecords(x, s.j4 + e, low, high);
-    ProjectLanes<kResidual>(s, e, &i0, &j0, &worst);
+    ProjectLanes<kResidual, kFirst>(s, e, &i0, &j0, &worst);
     StoreRecords(i0, x, s.i4 + e, low, high);
     StoreRecords(j0, x, s.j4 + e, low, high);
     e += 8;
   }
   alignas(64) double lane_worst[8];
   _mm512_store_pd(lane_worst, worst);
-  const double tail = ProjectScalar<kResidual>(s, e, end, x);
+  const double tail = ProjectScalar<kResidual, kFirst>(s, e, end, x);
   return std::max(tail, *std::max_element(lane_worst, lane_worst + 8));
+}
+
+// The prediction into the records, one node per 256-bit record (see Advance, whose scalar loop
+// it mirrors operation for operation, so both give the same bits): record p =
+// (x + (Δt v + Δt² a), w) with a = g + w f for node order[p], (x, 0) for a massless node.
+// forces may be null. The 3-vectors of node i are read with a 3-lane mask (no overrun past the
+// last node).
+__attribute__((target("avx512f,avx512vl"))) void PredictAvx512(
+    size_t n, const int32_t* order, const double* inverse_mass, const double* px, const double* pv,
+    const double* forces, const std::array<double, 3>& g, double dt, double* nodes, double* w) {
+  const __m256d vdt = _mm256_set1_pd(dt);
+  const __m256d vdt2 = _mm256_set1_pd(dt * dt);
+  const __m256d vg = _mm256_setr_pd(g[0], g[1], g[2], 0.0);
+  for (size_t p = 0; p < n; ++p) {
+    const auto i = static_cast<size_t>(order[p]);
+    const double wi = inverse_mass[i];
+    const __m256d x = _mm256_maskz_loadu_pd(0x7, px + 3 * i);
+    __m256d record = x;
+    if (wi > 0.0) {
+      __m256d a = vg;
+      if (forces != nullptr) {
+        a = _mm256_add_pd(
+            a, _mm256_mul_pd(_mm256_set1_pd(wi), _mm256_maskz_loadu_pd(0x7, forces + 3 * i)));
+      }
+      const __m256d v = _mm256_maskz_loadu_pd(0x7, pv + 3 * i);
+      record = _mm256_add_pd(x, _mm256_add_pd(_mm256_mul_pd(vdt, v), _mm256_mul_pd(vdt2, a)));
+    }
+    // Lane 3 (0 so far) becomes w.
+    _mm256_store_pd(nodes + 4 * p, _mm256_mask_broadcastsd_pd(record, 0x8, _mm_set_sd(wi)));
+    w[p] = wi;
+  }
 }
 
 bool CpuHasAvx512() {
   static const bool has = [] {
     __builtin_cpu_init();
-    return __builtin_cpu_supports("avx512f") != 0;
+    return __builtin_cpu_supports("avx512f") != 0 && __builtin_cpu_supports("avx512vl") != 0;
   }();
   return has;
 }
@@ -618,7 +662,13 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
       w[p] = wi;
     }
   };
+#ifdef SOMASIM_PBD_AVX512
+  if (simd_) {
+    PredictAvx512(n, node_order_.data(), inverse_mass_.data(), px, pv, pf, g, dt, nodes, w);
+  } else if (pf != nullptr) {
+#else
   if (pf != nullptr) {
+#endif
     predict(std::true_type{});
   } else {
     predict(std::false_type{});
@@ -676,7 +726,6 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
     state->prepared_dt = dt;
   }
 
-  std::fill(state->lambda.begin(), state->lambda.end(), 0.0);
   const SweepArrays arrays{sweep_i4_.data(),          sweep_j4_.data(),
                            sweep_rest_.data(),        sweep_inv_rest_.data(),
                            state->sweep_alpha.data(), state->sweep_gain.data(),
@@ -685,6 +734,28 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   int iteration = 0;
   double residual = 0.0;  // computed only when a tolerance asks for it
   const double tolerance = parameters_.tolerance;
+  // The sweep kernel for this sweep: vector or scalar, residual or not, first sweep (λ = 0, not
+  // read: this is what sets every λ of the step) or later.
+  const bool with_residual = tolerance > 0.0;
+  const auto project = [&](size_t begin, size_t end) {
+    const bool first = iteration == 1;
+#ifdef SOMASIM_PBD_AVX512
+    if (simd_) {
+      if (first) {
+        return with_residual ? ProjectAvx512<true, true>(arrays, begin, end, nodes)
+                             : ProjectAvx512<false, true>(arrays, begin, end, nodes);
+      }
+      return with_residual ? ProjectAvx512<true, false>(arrays, begin, end, nodes)
+                           : ProjectAvx512<false, false>(arrays, begin, end, nodes);
+    }
+#endif
+    if (first) {
+      return with_residual ? ProjectScalar<true, true>(arrays, begin, end, nodes)
+                           : ProjectScalar<false, true>(arrays, begin, end, nodes);
+    }
+    return with_residual ? ProjectScalar<true, false>(arrays, begin, end, nodes)
+                         : ProjectScalar<false, false>(arrays, begin, end, nodes);
+  };
   while (iteration < parameters_.iterations) {
     ++iteration;
     residual = 0.0;
@@ -693,18 +764,7 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
     for (size_t c = 0; c < num_colours; ++c) {
       const auto begin = static_cast<size_t>(colour_start_[c]);
       const auto end = static_cast<size_t>(colour_start_[c + 1]);
-      double worst = 0.0;
-#ifdef SOMASIM_PBD_AVX512
-      if (simd_) {
-        worst = tolerance > 0.0 ? ProjectAvx512<true>(arrays, begin, end, nodes)
-                                : ProjectAvx512<false>(arrays, begin, end, nodes);
-        residual = std::max(residual, worst);
-        continue;
-      }
-#endif
-      worst = tolerance > 0.0 ? ProjectScalar<true>(arrays, begin, end, nodes)
-                              : ProjectScalar<false>(arrays, begin, end, nodes);
-      residual = std::max(residual, worst);
+      residual = std::max(residual, project(begin, end));
     }
     // Attachments: the vector constraint C = x - t̄ with compliance 1/K, ∇C = I (XPBD).
     for (size_t k = 0; k < state->num_attached; ++k) {
@@ -770,14 +830,15 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   }
 
   // Back to the public order, with velocities consistent with the Verlet step:
-  // v = (x_new - x)/Δt (fixed nodes: 0).
+  // v = (x_new - x)/Δt (fixed nodes: 0). In public order, so that x and v are read and written
+  // as streams and only the records are read at random (no random read-modify-write).
   const double inverse_dt = 1.0 / dt;
   double* __restrict out_x = x.data();
   double* __restrict out_v = state->velocities.data();
-  for (size_t p = 0; p < n; ++p) {
-    const auto i = static_cast<size_t>(node_order_[p]);
+  for (size_t i = 0; i < n; ++i) {
+    const double* record = nodes + 4 * static_cast<size_t>(node_slot_[i]);
     for (size_t k = 0; k < 3; ++k) {
-      const double updated = nodes[4 * p + k];
+      const double updated = record[k];
       out_v[3 * i + k] = (updated - out_x[3 * i + k]) * inverse_dt;
       out_x[3 * i + k] = updated;
     }

@@ -5,6 +5,17 @@
 // with XPBD compliance (Macklin, Müller & Chentanez 2016, "XPBD: position-based simulation of
 // compliant constrained dynamics"), whose stiffness depends neither on the iteration count nor
 // on the step. Pure kernel.
+//
+// Why it is fast (one thread): the sweeps run on 32-byte node records (x, y, z, w) in reverse
+// Cuthill–McKee order; constraints are graph-coloured, and each colour is projected 2 × 8 at a
+// time with AVX-512 (8 records transposed into lanes X Y Z W, projected, transposed back: the
+// transposes are the floor of the cost, ~2 shuffles per record each way). Per-constraint data
+// are contiguous arrays in sweep order (a, α̃, 1/(w_i + w_j + α̃), λ), the factors recomputed
+// only when Δt or the inverse masses change. 1/l is rsqrt14 with one third-order correction;
+// Δλ is one fused negated product. The first sweep of a step reads no λ (all 0 then) and writes
+// every λ, so a step neither zeroes λ nor reads α̃ in that sweep; λ is kept by swap on accepted
+// steps. The prediction into the records is vectorised; the copy back streams x and v in
+// public order. Results: scalar and vector sweeps agree to rounding (~1e-16 relative).
 #pragma once
 
 #include <Eigen/Core>
@@ -51,8 +62,9 @@ struct PositionBasedParameters {
   // 0 runs every iteration. Steps that end above it count as solver_unconverged.
   double tolerance = 0.0;
   double speed_limit = 100.0;  // [m/s], > 0: a faster node marks a diverged step
-  // Project each colour 8 constraints at a time with AVX-512 when the CPU has it (the same
-  // sweep order; results differ from the scalar sweep by rounding only). False: always scalar.
+  // Project each colour 8 constraints at a time with AVX-512 (F and VL) when the CPU has it
+  // (the same sweep order; results differ from the scalar sweep by rounding only), and predict
+  // with it. False: always scalar.
   bool vectorised = true;
   // Seed 004's volume reaction (solid_angle_volume.h): a restoring force at every surface node
   // against the change of its solid angle, added to the prediction's forces each step. All zero
