@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Runs every mesh-reader fuzzer for a fixed time, seeded from tests/data and shared/data/meshes.
+# Runs every mesh-reader fuzzer and the scene fuzzer for a fixed time, seeded from tests/data and shared/data/meshes.
 # Usage: run_fuzzers.sh BIN_DIR SECONDS [SHARED_DIR]. Fails if any fuzzer finds a crash.
 set -euo pipefail
 bin=$1
@@ -25,6 +25,7 @@ seeds stl "$data"/stl/*
 seeds vtk_legacy "$data"/vtk/*.vtk "$shared"/data/meshes/*.vtk
 seeds vtu "$data"/vtk/*.vtu "$shared"/data/meshes/*.vtu
 seeds gmsh "$data"/gmsh/* "$shared"/data/meshes/*.msh
+seeds scene "$data"/scenes/*
 mkdir -p "$work/tetgen"
 for node in "$data"/tetgen/*.node; do
   [ -f "$node" ] || continue
@@ -34,7 +35,7 @@ for node in "$data"/tetgen/*.node; do
 done
 
 status=0
-for fmt in obj stl vtk_legacy vtu gmsh tetgen; do
+for fmt in obj stl vtk_legacy vtu gmsh tetgen scene; do
   echo "== fuzz_$fmt: ${seconds} s, $(ls "$work/$fmt" | wc -l) seed files"
   mkdir -p "$work/$fmt-artifacts"
   if ! "$bin/fuzz_$fmt" "$work/$fmt" -max_total_time="$seconds" -max_len=65536 \

@@ -1,0 +1,348 @@
+#include "common/scene/scene.h"
+
+#include <google/protobuf/io/tokenizer.h>
+#include <google/protobuf/text_format.h>
+
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+#include <fstream>
+#include <set>
+#include <sstream>
+#include <string>
+
+#include "common/mesh_gen/builtin_organs.h"
+
+namespace somasim::scene {
+namespace {
+
+using google::protobuf::FieldDescriptor;
+using google::protobuf::Message;
+using google::protobuf::TextFormat;
+
+std::string Format(const std::string& file, int line, const std::string& field,
+                   const std::string& message) {
+  std::string out = file;
+  if (line > 0) out += ":" + std::to_string(line);
+  out += ": ";
+  if (!field.empty()) out += field + ": ";
+  return out + message;
+}
+
+// Collects the parser's first syntax error (line and column are 0-based).
+class FirstError final : public google::protobuf::io::ErrorCollector {
+ public:
+  void AddError(int line, google::protobuf::io::ColumnNumber column,
+                const std::string& message) override {
+    if (line_ >= 0) return;
+    line_ = line + 1;
+    message_ = message + " (column " + std::to_string(column + 1) + ")";
+  }
+  int line() const { return line_; }
+  const std::string& message() const { return message_; }
+
+ private:
+  int line_ = -1;
+  std::string message_ = "not a scene in protobuf text format";
+};
+
+// A position in the scene being checked: the message, its field path and its location tree,
+// so that a fault names the field and its line (or the enclosing value's line when the field
+// was not written).
+class Where {
+ public:
+  Where(const std::string* file, const TextFormat::ParseInfoTree* tree, const Message* message,
+        std::string path, int line)
+      : file_(file), tree_(tree), message_(message), path_(std::move(path)), line_(line) {}
+
+  int LineOf(const char* field, int index = -1) const {
+    const FieldDescriptor* fd = message_->GetDescriptor()->FindFieldByName(field);
+    if (tree_ != nullptr && fd != nullptr) {
+      const auto location = tree_->GetLocation(fd, fd->is_repeated() ? index : -1);
+      if (location.line >= 0) return location.line + 1;
+    }
+    return line_;
+  }
+  std::string PathOf(const char* field, int index = -1) const {
+    std::string p = path_.empty() ? std::string(field) : path_ + "." + field;
+    if (index >= 0) p += "[" + std::to_string(index) + "]";
+    return p;
+  }
+  Where Child(const char* field, const Message& child, int index = -1) const {
+    const FieldDescriptor* fd = message_->GetDescriptor()->FindFieldByName(field);
+    const TextFormat::ParseInfoTree* nested = nullptr;
+    if (tree_ != nullptr && fd != nullptr) {
+      nested = tree_->GetTreeForNested(fd, fd->is_repeated() ? index : -1);
+    }
+    return {file_, nested, &child, PathOf(field, index), LineOf(field, index)};
+  }
+  [[noreturn]] void Fail(const char* field, const std::string& message, int index = -1) const {
+    throw SceneError(*file_, LineOf(field, index), PathOf(field, index), message);
+  }
+  [[noreturn]] void FailHere(const std::string& message) const {
+    throw SceneError(*file_, line_, path_, message);
+  }
+  void Positive(const char* field, double value) const {
+    if (!(value > 0.0) || !std::isfinite(value)) Fail(field, "must be a finite value > 0");
+  }
+  void NonNegative(const char* field, double value) const {
+    if (!(value >= 0.0) || !std::isfinite(value)) Fail(field, "must be a finite value >= 0");
+  }
+  void Finite(const char* field, const Vec3& v) const {
+    if (!std::isfinite(v.x()) || !std::isfinite(v.y()) || !std::isfinite(v.z())) {
+      Fail(field, "must have finite x, y and z");
+    }
+  }
+
+ private:
+  const std::string* file_;
+  const TextFormat::ParseInfoTree* tree_;
+  const Message* message_;
+  std::string path_;
+  int line_;
+};
+
+void CheckRegion(const Where& w, const Region& region) {
+  switch (region.kind_case()) {
+    case Region::kBox: {
+      const Where b = w.Child("box", region.box());
+      b.Finite("min", region.box().min());
+      b.Finite("max", region.box().max());
+      if (!(region.box().min().x() < region.box().max().x()) ||
+          !(region.box().min().y() < region.box().max().y()) ||
+          !(region.box().min().z() < region.box().max().z())) {
+        b.Fail("max", "must be greater than min on every axis");
+      }
+      return;
+    }
+    case Region::kSphere: {
+      const Where s = w.Child("sphere", region.sphere());
+      s.Finite("center", region.sphere().center());
+      s.Positive("radius", region.sphere().radius());
+      return;
+    }
+    case Region::kNodes: {
+      const Where n = w.Child("nodes", region.nodes());
+      if (region.nodes().id_size() == 0) n.FailHere("lists no node");
+      for (int k = 0; k < region.nodes().id_size(); ++k) {
+        if (region.nodes().id(k) < 0) n.Fail("id", "must be >= 0 (a 0-based node index)", k);
+      }
+      return;
+    }
+    case Region::KIND_NOT_SET:
+      break;
+  }
+  w.FailHere("needs a box, a sphere or nodes");
+}
+
+bool IsFem(const Model& model) {
+  return model.kind_case() == Model::kFemLinear || model.kind_case() == Model::kFemCorotational ||
+         model.kind_case() == Model::kFemHyperelastic;
+}
+
+void CheckPoisson(const Where& m, double nu) {
+  if (!(nu > -1.0 && nu < 0.5)) m.Fail("poisson_ratio", "must lie in (-1, 0.5)");
+}
+
+void CheckMaterial(const Where& m, const Material& material, const Model& model) {
+  m.Positive("density", material.density());
+  m.NonNegative("damping_ratio", material.damping_ratio());
+  m.NonNegative("rayleigh_mass", material.rayleigh_mass());
+  m.NonNegative("rayleigh_stiffness", material.rayleigh_stiffness());
+  const bool hyperelastic = model.kind_case() == Model::kFemHyperelastic;
+  if (material.law_case() != Material::LAW_NOT_SET && !hyperelastic) {
+    m.FailHere("a named law (liver_nava2008, neo_hookean, stvk) needs the fem_hyperelastic model");
+  }
+  if (hyperelastic) {
+    switch (material.law_case()) {
+      case Material::kLiverNava2008: {
+        const double nu = material.liver_nava2008().poisson_ratio();
+        if (!(nu >= 0.0 && nu < 0.5)) {
+          m.Child("liver_nava2008", material.liver_nava2008())
+              .Fail("poisson_ratio", "must lie in [0, 0.5) (0: the default 0.49)");
+        }
+        break;
+      }
+      case Material::kNeoHookean: {
+        const Where n = m.Child("neo_hookean", material.neo_hookean());
+        n.Positive("c10", material.neo_hookean().c10());
+        n.Positive("d1", material.neo_hookean().d1());
+        break;
+      }
+      case Material::kStvk:
+        m.Positive("youngs_modulus", material.youngs_modulus());
+        CheckPoisson(m, material.poisson_ratio());
+        break;
+      case Material::LAW_NOT_SET:
+        m.FailHere("fem_hyperelastic needs a law: liver_nava2008, neo_hookean or stvk");
+    }
+  } else {
+    m.Positive("youngs_modulus", material.youngs_modulus());
+    if (IsFem(model)) CheckPoisson(m, material.poisson_ratio());
+  }
+  const bool viscous = material.prony_size() > 0 || material.liver_nava2008_prony();
+  if (viscous && !IsFem(model)) m.FailHere("prony terms (QLV) need a FEM model");
+  if (material.prony_size() > 0 && material.liver_nava2008_prony()) {
+    m.Fail("liver_nava2008_prony", "give either prony terms or liver_nava2008_prony, not both");
+  }
+  if (material.prony_size() > 4) m.Fail("prony", "at most 4 terms", 4);
+  double sum = 0.0;
+  for (int k = 0; k < material.prony_size(); ++k) {
+    const Where p = m.Child("prony", material.prony(k), k);
+    p.NonNegative("gamma", material.prony(k).gamma());
+    p.Positive("tau", material.prony(k).tau());
+    sum += material.prony(k).gamma();
+  }
+  if (sum > 1.0) m.Fail("prony", "the gammas sum to more than 1 (G(0) = 1)", 0);
+}
+
+void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) {
+  if (organ.id().empty()) o.Fail("id", "is missing");
+  for (const char c : organ.id()) {
+    if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-')) {
+      o.Fail("id", "\"" + organ.id() + "\" may hold only letters, digits, '_' and '-'");
+    }
+  }
+  if (!ids->insert(organ.id()).second) o.Fail("id", "\"" + organ.id() + "\" is used twice");
+  switch (organ.mesh_case()) {
+    case Organ::kBuiltin:
+      if (mesh_gen::FindBuiltinOrgan(organ.builtin()) == nullptr) {
+        o.Fail("builtin", "unknown organ \"" + organ.builtin() +
+                              "\"; built in: " + mesh_gen::BuiltinOrganNames());
+      }
+      break;
+    case Organ::kFile:
+      if (organ.file().empty()) o.Fail("file", "is empty");
+      break;
+    case Organ::MESH_NOT_SET:
+      o.FailHere("needs a mesh: builtin or file");
+  }
+  if (!organ.unit().empty() && organ.unit() != "m" && organ.unit() != "cm" &&
+      organ.unit() != "mm") {
+    o.Fail("unit", "must be m, cm or mm, not \"" + organ.unit() + "\"");
+  }
+  const Where m = o.Child("model", organ.model());
+  const Model& model = organ.model();
+  if (model.kind_case() == Model::KIND_NOT_SET) {
+    m.FailHere(
+        "needs a kind: mass_spring, molecular, position_based, fem_linear, fem_corotational or "
+        "fem_hyperelastic");
+  }
+  m.NonNegative("dt", model.dt());
+  m.NonNegative("solver_tolerance", model.solver_tolerance());
+  if (model.solver_max_iterations() < 0) m.Fail("solver_max_iterations", "must be >= 0");
+  if (model.has_position_based() && model.position_based().iterations() < 0) {
+    m.Child("position_based", model.position_based()).Fail("iterations", "must be >= 0");
+  }
+  CheckMaterial(o.Child("material", organ.material()), organ.material(), model);
+  for (int k = 0; k < organ.fixed_size(); ++k) {
+    CheckRegion(o.Child("fixed", organ.fixed(k), k), organ.fixed(k));
+  }
+}
+
+void CheckScene(const Where& s, const Scene& scene) {
+  if (scene.format_version() != kSceneFormatVersion) {
+    s.Fail("format_version", "is " + std::to_string(scene.format_version()) +
+                                 "; this somasim reads version " +
+                                 std::to_string(kSceneFormatVersion));
+  }
+  if (scene.organ_size() == 0) s.FailHere("has no organ");
+  std::set<std::string> ids;
+  for (int k = 0; k < scene.organ_size(); ++k) {
+    CheckOrgan(s.Child("organ", scene.organ(k), k), scene.organ(k), &ids);
+  }
+  for (int k = 0; k < scene.load_size(); ++k) {
+    const Load& load = scene.load(k);
+    const Where l = s.Child("load", load, k);
+    if (ids.count(load.organ()) == 0) {
+      l.Fail("organ", "\"" + load.organ() + "\" is not an organ of the scene");
+    }
+    CheckRegion(l.Child("region", load.region()), load.region());
+    switch (load.kind_case()) {
+      case Load::kForce:
+        l.Finite("force", load.force());
+        break;
+      case Load::kDisplacement:
+        l.Finite("displacement", load.displacement());
+        break;
+      case Load::KIND_NOT_SET:
+        l.FailHere("needs a force or a displacement");
+    }
+    for (int h = 0; h < load.history_size(); ++h) {
+      const Where p = l.Child("history", load.history(h), h);
+      if (!std::isfinite(load.history(h).t()) || !std::isfinite(load.history(h).scale())) {
+        p.FailHere("t and scale must be finite");
+      }
+      if (h > 0 && !(load.history(h).t() > load.history(h - 1).t())) {
+        p.Fail("t", "must increase from one point to the next");
+      }
+    }
+  }
+  s.Finite("gravity", scene.gravity());
+  const Analysis& analysis = scene.analysis();
+  const Where a = s.Child("analysis", analysis);
+  switch (analysis.kind_case()) {
+    case Analysis::kStaticSolve:
+      if (analysis.static_solve().load_steps() < 0) {
+        a.Child("static_solve", analysis.static_solve()).Fail("load_steps", "must be >= 0");
+      }
+      break;
+    case Analysis::kQuasiStatic: {
+      const Where q = a.Child("quasi_static", analysis.quasi_static());
+      q.Positive("end_time", analysis.quasi_static().end_time());
+      q.Positive("dt", analysis.quasi_static().dt());
+      break;
+    }
+    case Analysis::kDynamic:
+      a.Child("dynamic", analysis.dynamic()).Positive("end_time", analysis.dynamic().end_time());
+      break;
+    case Analysis::KIND_NOT_SET:
+      break;  // the server runs the scene interactively
+  }
+  const Output& output = scene.output();
+  for (int k = 0; k < output.time_size(); ++k) {
+    const Where o = s.Child("output", output);
+    if (!(output.time(k) >= 0.0) || !std::isfinite(output.time(k))) {
+      o.Fail("time", "must be a finite time >= 0", k);
+    }
+    if (k > 0 && !(output.time(k) > output.time(k - 1))) o.Fail("time", "must increase", k);
+  }
+}
+
+}  // namespace
+
+SceneError::SceneError(const std::string& file, int line, const std::string& field,
+                       const std::string& message)
+    : std::runtime_error(Format(file, line, field, message)),
+      file_(file),
+      line_(line),
+      field_(field) {}
+
+Scene ParseScene(std::string_view text, const std::string& file_name) {
+  Scene scene;
+  TextFormat::Parser parser;
+  FirstError errors;
+  TextFormat::ParseInfoTree tree;
+  parser.RecordErrorsTo(&errors);
+  parser.WriteLocationsTo(&tree);
+  google::protobuf::io::ArrayInputStream input(text.data(), static_cast<int>(text.size()));
+  if (text.size() > (1u << 26) ||  // 64 MiB: a scene is a few kilobytes
+      !parser.Parse(&input, &scene)) {
+    throw SceneError(
+        file_name, std::max(errors.line(), 0), "",
+        text.size() > (1u << 26) ? "larger than 64 MiB: not a scene" : errors.message());
+  }
+  CheckScene(Where(&file_name, &tree, &scene, "", 1), scene);
+  return scene;
+}
+
+Scene LoadSceneFile(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw SceneError(path, 0, "", "cannot open the file");
+  std::ostringstream text;
+  text << in.rdbuf();
+  if (in.bad()) throw SceneError(path, 0, "", "cannot read the file");
+  return ParseScene(text.str(), path);
+}
+
+}  // namespace somasim::scene

@@ -1,0 +1,168 @@
+// Scenes: a good scene loads with every field; a bad one is refused with the file, the line and
+// the field named — syntax errors, unknown fields, out-of-range and non-finite values, unknown
+// organs and references, histories that go back in time — and never half-loaded.
+#include "common/scene/scene.h"
+
+#include <gtest/gtest.h>
+
+#include <string>
+
+namespace somasim::scene {
+namespace {
+
+const char* const kGood = R"(format_version: 1
+name: "two organs"
+organ {
+  id: "kidney"
+  builtin: "kidney424"
+  model { fem_corotational {} dt: 0.01 }
+  material { density: 1050 youngs_modulus: 5000 poisson_ratio: 0.45 rayleigh_mass: 0.1 }
+  fixed { sphere { center { x: 0 y: 0 z: 0 } radius: 0.01 } }
+}
+organ {
+  id: "patch"
+  file: "patch.obj"
+  unit: "mm"
+  model { mass_spring { implicit: true } }
+  material { density: 1000 youngs_modulus: 3000 damping_ratio: 0.1 }
+}
+load {
+  organ: "kidney"
+  region { nodes { id: 3 id: 4 } }
+  force { z: -0.5 }
+  history { t: 0 scale: 0 }
+  history { t: 1 scale: 1 }
+}
+gravity { z: -9.81 }
+analysis { quasi_static { end_time: 2 dt: 0.1 } }
+output { time: 1 time: 2 }
+)";
+
+// Parses `text`; expects a SceneError whose message names `line` and contains `what`.
+void ExpectRefused(const std::string& text, int line, const std::string& field,
+                   const std::string& what) {
+  try {
+    ParseScene(text, "bad.scene.txtpb");
+    ADD_FAILURE() << "accepted a scene that should fail with: " << what;
+  } catch (const SceneError& e) {
+    EXPECT_EQ(e.line(), line) << e.what();
+    EXPECT_EQ(e.field(), field) << e.what();
+    EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    EXPECT_EQ(std::string(e.what()).rfind("bad.scene.txtpb", 0), 0u) << e.what();
+  }
+}
+
+// kGood with the first occurrence of `from` replaced by `to`.
+std::string Edit(const std::string& from, const std::string& to) {
+  std::string text = kGood;
+  const size_t at = text.find(from);
+  EXPECT_NE(at, std::string::npos) << from;
+  return text.replace(at, from.size(), to);
+}
+
+TEST(Scene, LoadsEveryField) {
+  const Scene scene = ParseScene(kGood, "good.scene.txtpb");
+  ASSERT_EQ(scene.organ_size(), 2);
+  EXPECT_EQ(scene.organ(0).builtin(), "kidney424");
+  EXPECT_TRUE(scene.organ(0).model().has_fem_corotational());
+  EXPECT_DOUBLE_EQ(scene.organ(0).material().poisson_ratio(), 0.45);
+  EXPECT_EQ(scene.organ(1).unit(), "mm");
+  EXPECT_TRUE(scene.organ(1).model().mass_spring().implicit());
+  ASSERT_EQ(scene.load_size(), 1);
+  EXPECT_EQ(scene.load(0).region().nodes().id_size(), 2);
+  EXPECT_DOUBLE_EQ(scene.gravity().z(), -9.81);
+  EXPECT_DOUBLE_EQ(scene.analysis().quasi_static().dt(), 0.1);
+  EXPECT_EQ(scene.output().time_size(), 2);
+}
+
+TEST(Scene, TheExampleScenesLoad) {
+  const Scene scene =
+      LoadSceneFile(std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/liver_creep.scene.txtpb");
+  EXPECT_EQ(scene.organ(0).builtin(), "liver4055");
+  EXPECT_TRUE(scene.organ(0).material().liver_nava2008_prony());
+}
+
+TEST(Scene, RefusesSyntaxErrorsWithTheirLine) {
+  ExpectRefused(Edit("density: 1050", "density: 1050 }"), 7, "",
+                "no field named \"youngs_modulus\"");
+  ExpectRefused(Edit("name: \"two organs\"", "name: \"two organs\"\nspeed: 3"), 3, "",
+                "no field named \"speed\"");
+  ExpectRefused(Edit("radius: 0.01", "radius: \"big\""), 8, "", "Expected double");
+  ExpectRefused("", 1, "format_version", "reads version 1");
+  ExpectRefused("format_version: 1", 1, "", "has no organ");
+}
+
+TEST(Scene, RefusesBadValuesNamingTheField) {
+  ExpectRefused(Edit("format_version: 1", "format_version: 2"), 1, "format_version",
+                "reads version 1");
+  ExpectRefused(Edit("density: 1050", "density: -1"), 7, "organ[0].material.density", "> 0");
+  ExpectRefused(Edit("youngs_modulus: 5000", "youngs_modulus: nan"), 7,
+                "organ[0].material.youngs_modulus", "finite");
+  ExpectRefused(Edit("poisson_ratio: 0.45", "poisson_ratio: 0.5"), 7,
+                "organ[0].material.poisson_ratio", "(-1, 0.5)");
+  ExpectRefused(Edit("radius: 0.01", "radius: 0"), 8, "organ[0].fixed[0].sphere.radius", "> 0");
+  ExpectRefused(Edit("dt: 0.01", "dt: -0.01"), 6, "organ[0].model.dt", ">= 0");
+  ExpectRefused(Edit("unit: \"mm\"", "unit: \"inch\""), 13, "organ[1].unit", "m, cm or mm");
+  ExpectRefused(Edit("id: 3 id: 4", "id: 3 id: -4"), 19, "load[0].region.nodes.id[1]", ">= 0");
+  ExpectRefused(Edit("force { z: -0.5 }", "force { z: inf }"), 20, "load[0].force", "finite");
+  ExpectRefused(Edit("gravity { z: -9.81 }", "gravity { z: nan }"), 24, "gravity", "finite");
+  ExpectRefused(Edit("end_time: 2 dt: 0.1", "end_time: 2 dt: 0"), 25, "analysis.quasi_static.dt",
+                "> 0");
+  ExpectRefused(Edit("time: 1 time: 2", "time: 2 time: 1"), 26, "output.time[1]", "increase");
+}
+
+TEST(Scene, RefusesUnknownNamesAndReferences) {
+  ExpectRefused(Edit("builtin: \"kidney424\"", "builtin: \"heart9\""), 5, "organ[0].builtin",
+                "unknown organ \"heart9\"");
+  ExpectRefused(Edit("id: \"patch\"", "id: \"kidney\""), 11, "organ[1].id", "used twice");
+  ExpectRefused(Edit("id: \"patch\"", "id: \"my patch\""), 11, "organ[1].id", "letters");
+  ExpectRefused(Edit("organ: \"kidney\"", "organ: \"liver\""), 18, "load[0].organ", "not an organ");
+  ExpectRefused(Edit("history { t: 1 scale: 1 }", "history { t: 0 scale: 1 }"), 22,
+                "load[0].history[1].t", "increase");
+  ExpectRefused(Edit("  model { mass_spring { implicit: true } }\n", ""), 10, "organ[1].model",
+                "needs a kind");
+  ExpectRefused(Edit("  region { nodes { id: 3 id: 4 } }\n", ""), 17, "load[0].region",
+                "needs a box, a sphere or nodes");
+}
+
+TEST(Scene, RefusesMaterialsTheModelCannotUse) {
+  ExpectRefused(Edit("rayleigh_mass: 0.1", "rayleigh_mass: 0.1 neo_hookean { c10: 1 d1: 1 }"), 7,
+                "organ[0].material", "fem_hyperelastic");
+  ExpectRefused(Edit("damping_ratio: 0.1", "damping_ratio: 0.1 prony { gamma: 0.5 tau: 1 }"), 15,
+                "organ[1].material", "FEM model");
+  ExpectRefused(Edit("fem_corotational {}", "fem_hyperelastic {}"), 7, "organ[0].material",
+                "needs a law");
+  ExpectRefused(Edit("rayleigh_mass: 0.1",
+                     "rayleigh_mass: 0.1 prony { gamma: 0.7 tau: 1 } prony { gamma: 0.5 tau: 2 }"),
+                7, "organ[0].material.prony[0]", "sum to more than 1");
+  ExpectRefused(Edit("rayleigh_mass: 0.1", "rayleigh_mass: 0.1 prony { gamma: 0.2 tau: 0 }"), 7,
+                "organ[0].material.prony[0].tau", "> 0");
+}
+
+// Every prefix of a good scene either parses (when the cut falls between complete fields) or is
+// refused with a SceneError; nothing else escapes.
+TEST(Scene, EveryTruncationIsRefusedOrComplete) {
+  const std::string text = kGood;
+  int refused = 0;
+  for (size_t n = 0; n < text.size(); ++n) {
+    try {
+      ParseScene(std::string_view(text).substr(0, n), "cut.scene.txtpb");
+    } catch (const SceneError&) {
+      ++refused;
+    }
+  }
+  EXPECT_GT(refused, static_cast<int>(text.size()) / 2);
+}
+
+TEST(Scene, RefusesAFileItCannotRead) {
+  try {
+    LoadSceneFile("/nonexistent/none.scene.txtpb");
+    ADD_FAILURE();
+  } catch (const SceneError& e) {
+    EXPECT_EQ(e.line(), 0);
+    EXPECT_NE(std::string(e.what()).find("cannot open"), std::string::npos);
+  }
+}
+
+}  // namespace
+}  // namespace somasim::scene
