@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <Eigen/Dense>
+#include <initializer_list>
 #include <random>
 #include <vector>
 
@@ -44,6 +45,13 @@ BlockSparseMatrix RandomSpd(const mesh::TetMesh& mesh, double shift, Eigen::Matr
   return a;
 }
 
+// 1 for the nodes in `held`, 0 for the others (num_nodes entries).
+std::vector<uint8_t> HeldNodes(int32_t num_nodes, std::initializer_list<int32_t> held) {
+  std::vector<uint8_t> out(static_cast<size_t>(num_nodes), 0);
+  for (const int32_t i : held) out[static_cast<size_t>(i)] = 1;
+  return out;
+}
+
 TEST(BlockSparseMatrix, ProductMatchesTheDenseMatrix) {
   const mesh::TetMesh box =
       mesh_gen::BoxGridTets(3, 3, 3, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones());
@@ -61,8 +69,7 @@ TEST(BlockSparseMatrix, ConjugateGradientsWithDirichletNodesMatchesCholmod) {
   Eigen::MatrixXd dense;
   const BlockSparseMatrix a = RandomSpd(box, 1e-3, &dense);
   const int32_t n = a.num_nodes();
-  std::vector<uint8_t> constrained(static_cast<size_t>(n), 0);
-  constrained[0] = constrained[5] = constrained[17] = 1;
+  const std::vector<uint8_t> constrained = HeldNodes(n, {0, 5, 17});
   Eigen::VectorXd b = Eigen::VectorXd::LinSpaced(3 * n, 1.0, -1.0);
   // Known values on the held nodes; the free rows carry the held columns to the right-hand side.
   Eigen::VectorXd known = Eigen::VectorXd::Zero(3 * n);
