@@ -29,6 +29,14 @@ struct SkippedElements {
   int64_t count = 0;
 };
 
+// A named array of values per node (e.g. "displacement", 3 components, metres), written by the
+// VTU writer as point data; readers leave it empty.
+struct PointArray {
+  std::string name;
+  int components = 1;          // > 0
+  std::vector<double> values;  // components × num_nodes, node-major
+};
+
 struct MeshData {
   mesh::Points vertices;        // [m], 3 × num_nodes, in file order
   mesh::Triangles triangles;    // 3 × num_triangles, file order
@@ -36,6 +44,7 @@ struct MeshData {
   std::vector<SkippedElements> skipped;
   int64_t num_flipped = 0;  // tetrahedra re-oriented because of ReadOptions::fix_orientation
   std::string format;       // what was read, e.g. "Gmsh 2.2 ASCII"
+  std::vector<PointArray> point_data;  // written by WriteVtu; not read
 };
 
 // Adds count elements of the given type to the skipped list (merging equal types).

@@ -3,12 +3,14 @@
 #include <zlib.h>
 
 #include <algorithm>
+#include <cctype>
 #include <cstdint>
 #include <cstring>
 #include <deque>
 #include <limits>
 #include <optional>
 #include <pugixml.hpp>
+#include <stdexcept>
 #include <string>
 #include <string_view>
 #include <type_traits>
@@ -1117,6 +1119,28 @@ std::string WriteVtu(const MeshData& mesh, const VtuWriteOptions& options) {
     }
     out += "        </DataArray>\n";
   };
+  if (!mesh.point_data.empty()) {
+    out += "      <PointData>\n";
+    for (const PointArray& array : mesh.point_data) {
+      for (const char c : array.name) {  // the name goes into an XML attribute as is
+        if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-' || c == ' ')) {
+          throw std::invalid_argument("WriteVtu: point data name \"" + array.name +
+                                      "\" may hold only letters, digits, ' ', '_' and '-'");
+        }
+      }
+      if (array.name.empty() || array.components <= 0 ||
+          array.values.size() != static_cast<size_t>(array.components) * n) {
+        throw std::invalid_argument("WriteVtu: point data \"" + array.name + "\" has " +
+                                    std::to_string(array.values.size()) + " values, not " +
+                                    std::to_string(array.components) + " per node for " +
+                                    std::to_string(n) + " nodes");
+      }
+      write_array(
+          "Float64", array.name.c_str(), array.components, array.values.size(),
+          [&array](size_t i) { return array.values[i]; }, double{});
+    }
+    out += "      </PointData>\n";
+  }
   out += "      <Points>\n";
   write_array("Float64", "Points", 3, 3 * n, point, double{});
   out += "      </Points>\n      <Cells>\n";

@@ -255,6 +255,31 @@ TEST(VtuWriter, WritesTheAnnouncedLayout) {
   EXPECT_EQ(big.substr(data, 4), std::string("\0\0\0\xc0", 4));
 }
 
+// Point data (e.g. somasim-solve's displacement) goes into <PointData> in every encoding; our own
+// reader checks its size against the points and still reads the mesh.
+TEST(VtuWriter, WritesPointData) {
+  MeshData box = BoxTets(1, 1, 1);
+  PointArray displacement{"displacement", 3, {}};
+  for (int k = 0; k < 24; ++k) displacement.values.push_back(0.25 * k - 1.0);
+  box.point_data.push_back(displacement);
+  box.point_data.push_back({"pressure", 1, std::vector<double>(8, 3.5)});
+  for (VtuEncoding encoding :
+       {VtuEncoding::kAscii, VtuEncoding::kBase64, VtuEncoding::kAppendedRaw}) {
+    const std::string text = WriteVtu(box, {encoding, false});
+    EXPECT_TRUE(Contains(text, "<PointData>")) << static_cast<int>(encoding);
+    EXPECT_TRUE(Contains(text, "Name=\"displacement\" NumberOfComponents=\"3\""));
+    EXPECT_TRUE(SameMesh(box, Read(text), 0.0));
+  }
+  const std::string ascii = WriteVtu(box, {VtuEncoding::kAscii, false});
+  EXPECT_TRUE(Contains(ascii, "\n          -1 -0.75 -0.5\n          -0.25 0 0.25\n"));
+  MeshData bad = box;
+  bad.point_data[0].values.pop_back();
+  EXPECT_THROW(WriteVtu(bad, {}), std::invalid_argument);
+  bad = box;
+  bad.point_data[0].name = "a\"b";
+  EXPECT_THROW(WriteVtu(bad, {}), std::invalid_argument);
+}
+
 // A well-formed file with no points is written, but reading refuses it (MeshBuilder's rule).
 TEST(VtuWriter, EmptyMeshIsWrittenButRefusedOnRead) {
   for (VtuEncoding encoding :
