@@ -20,8 +20,12 @@
 //      slots, backward sweep over the higher-colour ones, which also yields A z but for the
 //      lower-colour part, added by a third pass over the lower slots), so that CG updates
 //      A p = A z + β A p without a separate product; that third pass also updates p and A p
-//      (the CG direction), and r · z comes from the forward sweep (r · z = yᵀ D y). CG starts
-//      from Δv extrapolated from the last two steps (kept only when it beats zero).
+//      (the CG direction), and r · z comes from the forward sweep (r · z = yᵀ D y). CG's own
+//      step along the last direction rides along too (CgUpdate): the forward sweep, which loads
+//      r anyway, does r -= α q and sums |r|² (stopping right there once converged), the third
+//      pass, which loads p anyway, does Δv += α p; no separate pass over p, q, Δv, r, and z is
+//      read back from the sweeps' records instead of a 3 × P array of its own. CG starts from
+//      Δv extrapolated from the last two steps (kept only when it beats zero).
 // The colour ordering needs ~25 % more iterations than the natural one (its sweeps couple fewer
 // neighbours per pass), for sweeps that run several times faster.
 #include <immintrin.h>
@@ -311,23 +315,44 @@ SOMASIM_MSI_TARGET inline void StoreRecords3(double* base, const Vec3& v) {
   StoreRecords(base, 4, v.x, v.y, v.z, _mm512_setzero_pd());
 }
 
-// z = P⁻¹ r as PreconditionScalar, fused with CG's direction update: p = z + β p and q = A z +
-// β q with β = (r · z) / rz_before (p = z, q = A z when `first`); returns r · z and sets
-// *curvature = p · q. A z is formed as in PreconditionScalar, its lower-colour part in the last
-// pass, which updates p and q right away. zg (4 × P): the records of y, then z, that the sweeps
-// read at other nodes; az holds D z - s on groups with a massless lane.
-SOMASIM_MSI_TARGET double PreconditionAvx512(const Layout& l, const double* r, double* dy,
-                                             double* z, double* az, double* zg, bool first,
+// CG's step along the last direction, done inside the next preconditioner application (its
+// forward sweep reads r anyway, its last pass p): r -= α q, Δv += α p, and the stop when |r|² <=
+// threshold2 (then only Δv is updated).
+struct CgUpdate {
+  double alpha = 0.0;
+  double threshold2 = 0.0;
+  double* dv = nullptr;
+};
+
+// Unless `first`, first CG's step along the last direction (see CgUpdate; the forward sweep
+// updates r and sums |r|² into *residual_norm2, returning 0 at once if that converged). Then z =
+// P⁻¹ r as PreconditionScalar, fused with CG's direction update: p = z + β p and q = A z + β q
+// with β = (r · z) / rz_before (p = z, q = A z when `first`); returns r · z and sets *curvature =
+// p · q. A z is formed as in PreconditionScalar, its lower-colour part in the last pass, which
+// updates Δv, p and q right away. zg (4 × P): the records of y, then z, that the sweeps read at
+// other nodes (z itself is read back from them); az holds D z - s on groups with a massless lane.
+SOMASIM_MSI_TARGET double PreconditionAvx512(const Layout& l, const CgUpdate& update, double* r,
+                                             double* dy, double* az, double* zg, bool first,
                                              double rz_before, double* search, double* q,
-                                             double* curvature) {
+                                             double* curvature, double* residual_norm2) {
   const size_t p = l.padded;
-  __m512d rz = _mm512_setzero_pd();
+  const __m512d alpha = _mm512_set1_pd(update.alpha);
+  __m512d rz = _mm512_setzero_pd(), rr = _mm512_setzero_pd();
   for (size_t c = 0; c < l.colours; ++c) {
     for (auto g = static_cast<size_t>(l.colour_start[c]);
          g < static_cast<size_t>(l.colour_start[c + 1]); ++g) {
       const size_t i = kLanes * g;
       const auto begin = static_cast<size_t>(l.row_start[g]);
       Vec3 s = Load3(r, p, i);
+      if (!first) {  // CG's residual update r -= α q (q = A p of the last direction)
+        const Vec3 qo = Load3(q, p, i);
+        s = {_mm512_fnmadd_pd(alpha, qo.x, s.x), _mm512_fnmadd_pd(alpha, qo.y, s.y),
+             _mm512_fnmadd_pd(alpha, qo.z, s.z)};
+        Store3(r, p, i, s);
+        rr = _mm512_fmadd_pd(s.x, s.x, rr);
+        rr = _mm512_fmadd_pd(s.y, s.y, rr);
+        rr = _mm512_fmadd_pd(s.z, s.z, rr);
+      }
       Accumulate(l, begin, begin + static_cast<size_t>(l.lower_rows[g]), zg, &s);
       Store3(dy, p, i, s);
       const Vec3 y = Symmetric(l.inverse, p, i, s);
@@ -338,6 +363,16 @@ SOMASIM_MSI_TARGET double PreconditionAvx512(const Layout& l, const double* r, d
       rz = _mm512_fmadd_pd(y.z, s.z, rz);
     }
   }
+  if (!first) {
+    *residual_norm2 = Sum8(rr);
+    if (*residual_norm2 <= update.threshold2) {  // converged: only Δv += α p is left to do
+      for (size_t c = 0; c < 3 * p; c += kLanes) {
+        _mm512_storeu_pd(update.dv + c, _mm512_fmadd_pd(alpha, _mm512_loadu_pd(search + c),
+                                                        _mm512_loadu_pd(update.dv + c)));
+      }
+      return 0.0;
+    }
+  }
   for (size_t c = l.colours; c-- > 0;) {
     for (auto g = static_cast<size_t>(l.colour_start[c]);
          g < static_cast<size_t>(l.colour_start[c + 1]); ++g) {
@@ -346,7 +381,6 @@ SOMASIM_MSI_TARGET double PreconditionAvx512(const Layout& l, const double* r, d
       Accumulate(l, static_cast<size_t>(l.row_start[g]) + static_cast<size_t>(l.lower_rows[g]),
                  static_cast<size_t>(l.row_start[g + 1]), zg, &s);
       const Vec3 zi = Symmetric(l.inverse, p, i, s);
-      Store3(z, p, i, zi);
       StoreRecords3(zg + 4 * i, zi);
       if (l.massless_group[g] != 0) {  // the inverse is a stand-in on some lanes: D z != s
         const Vec3 dz = Symmetric(l.diagonal, p, i, zi);
@@ -372,10 +406,23 @@ SOMASIM_MSI_TARGET double PreconditionAvx512(const Layout& l, const double* r, d
     const __m512d keep = _mm512_loadu_pd(l.keep + i);
     a = {_mm512_mul_pd(keep, _mm512_sub_pd(a.x, s.x)), _mm512_mul_pd(keep, _mm512_sub_pd(a.y, s.y)),
          _mm512_mul_pd(keep, _mm512_sub_pd(a.z, s.z))};
-    const Vec3 zi = Load3(z, p, i);
+    Vec3 zi;
+    {
+      __m512d t[4];
+      const double* at = zg + 4 * i;  // this group's 8 records, contiguous
+      Transpose8x4<false>(_mm256_loadu_pd(at), _mm256_loadu_pd(at + 4), _mm256_loadu_pd(at + 8),
+                          _mm256_loadu_pd(at + 12), _mm256_loadu_pd(at + 16),
+                          _mm256_loadu_pd(at + 20), _mm256_loadu_pd(at + 24),
+                          _mm256_loadu_pd(at + 28), t);
+      zi = {t[0], t[1], t[2]};
+    }
     Vec3 pn = zi, qn = a;
     if (!first) {
       const Vec3 po = Load3(search, p, i), qo = Load3(q, p, i);
+      const Vec3 x = Load3(update.dv, p, i);  // CG's Δv += α p with the last direction
+      Store3(update.dv, p, i,
+             {_mm512_fmadd_pd(alpha, po.x, x.x), _mm512_fmadd_pd(alpha, po.y, x.y),
+              _mm512_fmadd_pd(alpha, po.z, x.z)});
       pn = {_mm512_fmadd_pd(beta, po.x, zi.x), _mm512_fmadd_pd(beta, po.y, zi.y),
             _mm512_fmadd_pd(beta, po.z, zi.z)};
       qn = {_mm512_fmadd_pd(beta, qo.x, a.x), _mm512_fmadd_pd(beta, qo.y, a.y),
@@ -420,19 +467,6 @@ double StepScalar(double alpha, size_t size, const double* p, const double* q, d
     sum += r[c] * r[c];
   }
   return sum;
-}
-
-SOMASIM_MSI_TARGET double StepAvx512(double alpha, size_t size, const double* p, const double* q,
-                                     double* dv, double* r) {
-  const __m512d a = _mm512_set1_pd(alpha);
-  __m512d sum = _mm512_setzero_pd();
-  for (size_t c = 0; c < size; c += kLanes) {
-    _mm512_storeu_pd(dv + c, _mm512_fmadd_pd(a, _mm512_loadu_pd(p + c), _mm512_loadu_pd(dv + c)));
-    const __m512d rc = _mm512_fnmadd_pd(a, _mm512_loadu_pd(q + c), _mm512_loadu_pd(r + c));
-    _mm512_storeu_pd(r + c, rc);
-    sum = _mm512_fmadd_pd(rc, rc, sum);
-  }
-  return Sum8(sum);
 }
 
 // p = z + β p, q = az + β q; returns p · q.
@@ -932,10 +966,12 @@ void MassSpringModel::AdvanceImplicit(const StepInputs& inputs, TissueState* bas
     // z = P⁻¹ r, then p = z + β p and q = A p (= A z + β A p, exact up to rounding) with β =
     // (r · z) / rz_before (p = z, q = A z when first); returns r · z, sets curvature = p · q.
     double curvature = 0.0;
+    double residual_norm2 = warm_norm2;
     const auto precondition = [&](bool first, double rz_before) {
-      if (avx512) {
-        return PreconditionAvx512(layout, r, dy, z, az, state->implicit_gather.data(), first,
-                                  rz_before, search, q, &curvature);
+      if (avx512) {  // fused with the step r -= α q, Δv += α p unless `first` (see CgUpdate)
+        const CgUpdate update{first ? 0.0 : rz_before / curvature, threshold2, dv};
+        return PreconditionAvx512(layout, update, r, dy, az, state->implicit_gather.data(), first,
+                                  rz_before, search, q, &curvature, &residual_norm2);
       }
       const double rz_next = PreconditionScalar(layout, r, dy, z, az);
       if (first) {
@@ -948,14 +984,16 @@ void MassSpringModel::AdvanceImplicit(const StepInputs& inputs, TissueState* bas
       return rz_next;
     };
     double rz = precondition(true, 0.0);
-    double residual_norm2 = warm_norm2;
     converged = residual_norm2 <= threshold2;
     while (!converged && iterations < cg_max_iterations_) {
       if (!(curvature > 0.0)) break;
-      const double alpha = rz / curvature;
-      residual_norm2 = avx512 ? StepAvx512(alpha, size, search, q, dv, r)
-                              : StepScalar(alpha, size, search, q, dv, r);
       ++iterations;
+      if (avx512) {  // step, test and (unless converged) the next direction in one call
+        rz = precondition(false, rz);
+        converged = residual_norm2 <= threshold2;
+        continue;
+      }
+      residual_norm2 = StepScalar(rz / curvature, size, search, q, dv, r);
       if (residual_norm2 <= threshold2) {
         converged = true;
         break;

@@ -21,7 +21,13 @@
 //    integrated at once (symplectic Euler on the 24 flat x, y, z values, after saving them for
 //    rollback: SavesGoodStateItself) while their data is still in L1: one pass over memory.
 //  - per spring the pass streams about 32 bytes (other node, l0, k, d, incoming slot); k and d
-//    live in the state in the column layout (MakeState fills and Cut zeroes both copies).
+//    live in the state in the column layout (MakeState fills and Cut zeroes both copies). When
+//    the springs share few exact (k, d) pairs (a structured mesh: 2,103 pairs for the 1M springs
+//    of a 53³ grid), the state keeps instead a 2-byte index per spring into the model's table of
+//    pairs (pair 0 is (0, 0): Cut just sets the index to 0), gathered from L1/L2: 18 bytes per
+//    spring instead of 32 of the pass's traffic, which is what bounds it on large meshes.
+//  - without anchors or grasps nothing is added to a node's force before the pass, which then
+//    neither reads nor clears `pending` (48 bytes per node less).
 #include "server/models/mass_spring_model.h"
 
 #include <algorithm>
@@ -57,7 +63,11 @@ struct SlicePass {
   const int32_t* other3;            // 8 per column
   const double* rest;               // [m], 8 per column
   const uint8_t* lanes;             // 1 per column
-  const double* stiffness_damping;  // 16 per column
+  const double* stiffness_damping;  // 16 per column, or nullptr: `material` instead
+  // When the springs share few (k, d) pairs: each lane's pair as an index into `material_kd`
+  // (k [N/m], d [N s/m] interleaved; pair 0 is (0, 0): empty lanes and cut springs).
+  const uint16_t* material;  // 8 per column
+  const double* material_kd;
   const uint8_t* consecutive;       // 1 per column: other nodes b, b + 1, ..., b + 7
   const int32_t* incoming_start;    // num_slices + 1
   const int32_t* incoming_slot;     // 8 per incoming column
@@ -66,7 +76,9 @@ struct SlicePass {
   double* ring;                     // [N], 24 per column, ring_mask + 1 columns
   size_t ring_mask;
   // Forces [N], flat. Integrating: what anchors and grasps add, zero again when the pass is
-  // done. Otherwise the output: the internal forces are added to it.
+  // done, or nullptr when nothing was added (no anchors, no grasps: the pass then neither
+  // reads nor clears 48 bytes per node). Otherwise the output: the internal forces are added
+  // to it.
   double* pending;
   bool integrate;
   // Integrating only: seed 002 eq. 4–5 with gravity and external forces, saving x and v first.
@@ -111,8 +123,16 @@ void SlicePassScalar(const SlicePass& p) {
         const size_t a = 3 * (first + lane);
         const auto b = static_cast<size_t>(p.other3[8 * c + lane]);
         double f[3];
-        SpringForce(p.x + a, p.v + a, p.x + b, p.v + b, p.stiffness_damping[16 * c + lane],
-                    p.stiffness_damping[16 * c + 8 + lane], p.rest[8 * c + lane], f);
+        double k = 0.0, d = 0.0;
+        if (p.material != nullptr) {
+          const size_t pair = 2 * size_t{p.material[8 * c + lane]};
+          k = p.material_kd[pair];
+          d = p.material_kd[pair + 1];
+        } else {
+          k = p.stiffness_damping[16 * c + lane];
+          d = p.stiffness_damping[16 * c + 8 + lane];
+        }
+        SpringForce(p.x + a, p.v + a, p.x + b, p.v + b, k, d, p.rest[8 * c + lane], f);
         for (size_t axis = 0; axis < 3; ++axis) {
           sum[lane][axis] += f[axis];
           p.ring[24 * (c & p.ring_mask) + 8 * axis + lane] = f[axis];
@@ -143,8 +163,11 @@ void SlicePassScalar(const SlicePass& p) {
       const double w = p.inverse_mass[node];
       const double moves = w > 0.0 ? 1.0 : 0.0;
       for (size_t axis = 0; axis < 3; ++axis) {
-        double f = sum[lane][axis] + p.pending[a + axis];
-        p.pending[a + axis] = 0.0;
+        double f = sum[lane][axis];
+        if (p.pending != nullptr) {
+          f += p.pending[a + axis];
+          p.pending[a + axis] = 0.0;
+        }
         if (p.external != nullptr) f += p.external[a + axis];
         const double v0 = p.v[a + axis], x0 = p.x[a + axis];
         p.good_v[a + axis] = v0;
@@ -269,10 +292,21 @@ SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
       const __m512d uz = _mm512_mul_pd(dz, inv);
       const __m512d closing =
           _mm512_fmadd_pd(dvz, uz, _mm512_fmadd_pd(dvy, uy, _mm512_mul_pd(dvx, ux)));
-      const double* const kd = p.stiffness_damping + 16 * c;
+      __m512d k, d;
+      if (p.material != nullptr) {
+        // 2 bytes per spring instead of 16: the pairs' table stays in L1/L2.
+        const __m256i pair = _mm256_slli_epi32(
+            _mm256_cvtepu16_epi32(
+                _mm_loadu_si128(reinterpret_cast<const __m128i*>(p.material + 8 * c))),
+            1);
+        k = Gather(lanes, pair, p.material_kd);
+        d = Gather(lanes, pair, p.material_kd + 1);
+      } else {
+        k = _mm512_loadu_pd(p.stiffness_damping + 16 * c);
+        d = _mm512_loadu_pd(p.stiffness_damping + 16 * c + 8);
+      }
       const __m512d magnitude = _mm512_fmadd_pd(
-          _mm512_loadu_pd(kd), _mm512_sub_pd(length, _mm512_loadu_pd(p.rest + 8 * c)),
-          _mm512_mul_pd(_mm512_loadu_pd(kd + 8), closing));
+          k, _mm512_sub_pd(length, _mm512_loadu_pd(p.rest + 8 * c)), _mm512_mul_pd(d, closing));
       const __m512d sx = _mm512_mul_pd(magnitude, ux);
       const __m512d sy = _mm512_mul_pd(magnitude, uy);
       const __m512d sz = _mm512_mul_pd(magnitude, uz);
@@ -309,8 +343,8 @@ SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
     }
     __m512d sum[3];
     Interleave(fx, fy, fz, &sum[0], &sum[1], &sum[2]);
-    double* const pending = p.pending + 3 * first;
     if (!p.integrate) {
+      double* const pending = p.pending + 3 * first;
       for (size_t k = 0; k < 3; ++k) {
         _mm512_mask_storeu_pd(
             pending + 8 * k, chunk[k],
@@ -322,8 +356,12 @@ SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
         _mm512_maskz_loadu_pd(static_cast<__mmask8>((1U << count) - 1U), p.inverse_mass + first);
     for (size_t k = 0; k < 3; ++k) {
       const size_t e = 8 * k;  // flat offset of the chunk within the slice
-      __m512d f = _mm512_add_pd(sum[k], _mm512_maskz_loadu_pd(chunk[k], pending + e));
-      _mm512_mask_storeu_pd(pending + e, chunk[k], _mm512_setzero_pd());
+      __m512d f = sum[k];
+      if (p.pending != nullptr) {
+        double* const pending = p.pending + 3 * first + e;
+        f = _mm512_add_pd(f, _mm512_maskz_loadu_pd(chunk[k], pending));
+        _mm512_mask_storeu_pd(pending, chunk[k], _mm512_setzero_pd());
+      }
       if (p.external != nullptr) {
         f = _mm512_add_pd(f, _mm512_maskz_loadu_pd(chunk[k], p.external + 3 * first + e));
       }
@@ -366,6 +404,17 @@ void RunSlicePass(const SlicePass& p) {
   }
 }
 
+// Points the pass at the state's spring constants in whichever form it holds them.
+void SetSpringConstants(const MassSpringState& state, const std::vector<double>& material_kd,
+                        SlicePass* pass) {
+  if (!state.column_material.empty()) {
+    pass->material = state.column_material.data();
+    pass->material_kd = material_kd.data();
+  } else {
+    pass->stiffness_damping = state.column_stiffness_damping.data();
+  }
+}
+
 void CheckParameters(const MassSpringParameters& p) {
   const auto positive_or_raw = [](double physical, double raw, const char* what) {
     if (raw > 0.0) return;
@@ -402,6 +451,10 @@ void CheckParameters(const MassSpringParameters& p) {
 }  // namespace
 
 void SetMassSpringAvx512ForTesting(bool enabled) { g_use_avx512 = enabled; }
+
+bool MassSpringStateUsesPairTableForTesting(const TissueState& state) {
+  return !static_cast<const MassSpringState&>(state).column_material.empty();
+}
 
 std::unique_ptr<MassSpringModel> MassSpringModel::FromTetMesh(
     const mesh::TetMesh& mesh, const MassSpringParameters& parameters) {
@@ -665,6 +718,29 @@ void MassSpringModel::BuildExplicitLayout() {
     }
     slice_incoming_start_.push_back(static_cast<int32_t>(incoming_lanes_.size()));
   }
+  // The distinct (k, d) pairs, exactly (no rounding): when each is shared by 8 springs or more
+  // on average (structured meshes: 2,103 pairs for the 1M springs of a 53³ grid) and the table
+  // stays small, the state keeps a 2-byte index per spring instead of k and d (16 bytes).
+  std::vector<std::array<double, 2>> pairs;
+  pairs.reserve(m + 1);
+  pairs.push_back({0.0, 0.0});
+  for (size_t s = 0; s < m; ++s) pairs.push_back({stiffness_[s], damping_[s]});
+  std::sort(pairs.begin(), pairs.end());
+  pairs.erase(std::unique(pairs.begin(), pairs.end()), pairs.end());
+  material_kd_.clear();
+  spring_material_.clear();
+  if (pairs.size() <= kMaxMaterialPairs && 8 * pairs.size() <= m) {
+    // Pair 0 must be (0, 0): stiffness and damping are >= 0, so it sorts first.
+    assert(pairs[0][0] == 0.0 && pairs[0][1] == 0.0);
+    for (const auto& pair : pairs)
+      material_kd_.insert(material_kd_.end(), pair.begin(), pair.end());
+    spring_material_.resize(m);
+    for (size_t s = 0; s < m; ++s) {
+      const std::array<double, 2> pair = {stiffness_[s], damping_[s]};
+      spring_material_[s] =
+          static_cast<uint16_t>(std::lower_bound(pairs.begin(), pairs.end(), pair) - pairs.begin());
+    }
+  }
 }
 
 std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
@@ -674,12 +750,19 @@ std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
   state->forces = mesh::Points::Zero(3, n);
   state->stiffness = stiffness_;
   state->damping = damping_;
-  state->column_stiffness_damping.assign(2 * column_rest_.size(), 0.0);
   state->column_forces.assign(24 * static_cast<size_t>(ring_columns_), 0.0);
-  for (size_t s = 0; s < spring_slot_.size(); ++s) {
-    const auto slot = static_cast<size_t>(spring_slot_[s]);
-    state->column_stiffness_damping[2 * slot - slot % 8] = stiffness_[s];
-    state->column_stiffness_damping[2 * slot - slot % 8 + 8] = damping_[s];
+  if (!spring_material_.empty()) {
+    state->column_material.assign(column_rest_.size(), 0);
+    for (size_t s = 0; s < spring_slot_.size(); ++s) {
+      state->column_material[static_cast<size_t>(spring_slot_[s])] = spring_material_[s];
+    }
+  } else {
+    state->column_stiffness_damping.assign(2 * column_rest_.size(), 0.0);
+    for (size_t s = 0; s < spring_slot_.size(); ++s) {
+      const auto slot = static_cast<size_t>(spring_slot_[s]);
+      state->column_stiffness_damping[2 * slot - slot % 8] = stiffness_[s];
+      state->column_stiffness_damping[2 * slot - slot % 8 + 8] = damping_[s];
+    }
   }
   if (integrator_ == MassSpringIntegrator::kImplicitEuler) {
     SizeImplicitScratch(state.get());
@@ -702,7 +785,7 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   pass.other3 = column_other3_.data();
   pass.rest = column_rest_.data();
   pass.lanes = column_lanes_.data();
-  pass.stiffness_damping = ms.column_stiffness_damping.data();
+  SetSpringConstants(ms, material_kd_, &pass);
   pass.consecutive = column_consecutive_.data();
   pass.incoming_start = slice_incoming_start_.data();
   pass.incoming_slot = incoming_slot_.data();
@@ -770,7 +853,7 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.other3 = column_other3_.data();
   pass.rest = column_rest_.data();
   pass.lanes = column_lanes_.data();
-  pass.stiffness_damping = state->column_stiffness_damping.data();
+  SetSpringConstants(*state, material_kd_, &pass);
   pass.consecutive = column_consecutive_.data();
   pass.incoming_start = slice_incoming_start_.data();
   pass.incoming_slot = incoming_slot_.data();
@@ -778,7 +861,7 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.incoming_rotated = incoming_rotated_.data();
   pass.ring = state->column_forces.data();
   pass.ring_mask = static_cast<size_t>(ring_columns_) - 1;
-  pass.pending = pending;
+  pass.pending = anchor_nodes_.empty() && inputs.attachments.empty() ? nullptr : pending;
   pass.integrate = true;
   pass.external = inputs.external_forces != nullptr ? inputs.external_forces->data() : nullptr;
   pass.inverse_mass = inverse_mass_.data();
@@ -844,8 +927,12 @@ int32_t MassSpringModel::Cut(const SweptQuad& sweep, TissueState* base) const {
       state->stiffness[s] = 0.0;
       state->damping[s] = 0.0;
       const auto slot = static_cast<size_t>(spring_slot_[s]);
-      state->column_stiffness_damping[2 * slot - slot % 8] = 0.0;
-      state->column_stiffness_damping[2 * slot - slot % 8 + 8] = 0.0;
+      if (!state->column_material.empty()) {
+        state->column_material[slot] = 0;  // the pair (0, 0)
+      } else {
+        state->column_stiffness_damping[2 * slot - slot % 8] = 0.0;
+        state->column_stiffness_damping[2 * slot - slot % 8 + 8] = 0.0;
+      }
       ++removed;
     }
   }

@@ -151,6 +151,13 @@ class MassSpringModel final : public TissueModel {
   std::vector<uint8_t> column_lanes_;        // 1 per column: bit l set when lane l has a spring
   std::vector<uint8_t> column_consecutive_;  // 1 per column: 1 if its other nodes are b..b + 7
   std::vector<int32_t> spring_slot_;         // num_springs: 8 × column + lane of each spring
+  // When the springs share few (k, d) pairs (BuildExplicitLayout decides): the pairs (k [N/m],
+  // d [N s/m] interleaved; pair 0 is (0, 0), for empty lanes and cut springs) and each spring's
+  // pair; the state then holds MassSpringState::column_material instead of
+  // column_stiffness_damping. Both empty otherwise.
+  static constexpr size_t kMaxMaterialPairs = 4096;  // 64 KiB of table
+  std::vector<double> material_kd_;
+  std::vector<uint16_t> spring_material_;
   // Each column's forces go to a ring (MassSpringState::column_forces) of ring_columns_ columns
   // (24 doubles each: x of the 8 lanes, then y, then z), whence the other nodes' slices gather
   // them: incoming column k of a slice holds each lane's k-th spring that ends on it.

@@ -27,6 +27,10 @@ class MassSpringState final : public TissueState {
   // stiffness and damping in the explicit layout (16 per column: k of the 8 lanes [N/m], then d
   // [N s/m]; 0 in empty lanes). MakeState and Cut keep them equal to the two vectors above.
   std::vector<double> column_stiffness_damping;
+  // Or, when the model's springs share few (k, d) pairs (MassSpringModel::material_kd_), each
+  // lane's pair (8 per column; 0: (0, 0), an empty lane or a cut spring). Exactly one of the
+  // two is non-empty.
+  std::vector<uint16_t> column_material;
   // The ring of the latest columns' spring forces [N] (24 per column: x, y, z of the 8 lanes).
   // Scratch, also of InternalForces on a const state.
   mutable std::vector<double> column_forces;

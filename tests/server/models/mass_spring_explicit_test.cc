@@ -9,6 +9,7 @@
 #include <array>
 #include <cmath>
 #include <random>
+#include <span>
 #include <vector>
 
 #include "common/mesh_gen/builtin_organs.h"
@@ -19,6 +20,9 @@ namespace somasim::models {
 
 // Defined in mass_spring_model.cc: false makes the explicit pass take its scalar path.
 void SetMassSpringAvx512ForTesting(bool enabled);
+// Defined in mass_spring_model.cc: whether the state keeps each spring's (k, d) as an index into
+// the model's table of distinct pairs (instead of k and d themselves).
+bool MassSpringStateUsesPairTableForTesting(const TissueState& state);
 
 namespace {
 
@@ -331,6 +335,65 @@ TEST(MassSpringExplicit, CutSpringsStayCutThroughThePass) {
   }
   EXPECT_LT(RelativeDifference(state->velocities - v0, dv), 1e-12);
   // (x - x0 would lose digits to cancellation: dt v is 1e-6 of x here.)
+  EXPECT_LT(RelativeDifference(state->positions, x0 + inputs.dt * (v0 + dv)), 1e-15);
+}
+
+// Springs that share their (k, d) (raw constants here) keep a 2-byte index into a table of the
+// distinct pairs: cutting sets the index to the pair (0, 0), and the pass (both paths) and a
+// step with a grasp (the pass then reads the forces added before it) follow the plain loop.
+TEST(MassSpringExplicit, PairTableCutsAndStepsLikeThePlainLoop) {
+  const Graph g = StressGraph();
+  MassSpringParameters p;
+  p.spring_stiffness = 30.0;  // [N/m]
+  p.node_mass = 0.002;        // [kg]
+  p.damping_ratio = 0.4;
+  const auto model = MassSpringModel::FromEdges(g.rest, g.edges, p);
+  const auto state = model->MakeState();
+  ASSERT_TRUE(MassSpringStateUsesPairTableForTesting(*state));
+  // The spleen's springs all differ: they keep k and d per spring.
+  const mesh_gen::BuiltinOrgan organ = mesh_gen::GenerateBuiltinOrgan("spleen600");
+  MassSpringParameters physical;
+  physical.youngs_modulus = 3000.0;
+  physical.density = 1050.0;
+  EXPECT_FALSE(MassSpringStateUsesPairTableForTesting(
+      *MassSpringModel::FromSurface(organ.surface, physical)->MakeState()));
+  // A blade through the cloud's middle (x = 0.05).
+  SweptQuad sweep;
+  sweep.p0 = Vector3d(0.05, -1.0, -1.0);
+  sweep.q0 = Vector3d(0.05, -1.0, 2.0);
+  sweep.p1 = Vector3d(0.05, 2.0, -1.0);
+  sweep.q1 = Vector3d(0.05, 2.0, 2.0);
+  std::vector<double> k = model->stiffness(), d(g.edges.size());
+  int32_t cut = 0;
+  for (size_t s = 0; s < g.edges.size(); ++s) {
+    d[s] = 2.0 * p.damping_ratio * std::sqrt(p.spring_stiffness * p.node_mass / 2.0);
+    const auto [i, j] = g.edges[s];
+    if (SegmentCrossesSweep(g.rest.col(i), g.rest.col(j), sweep)) {
+      k[s] = d[s] = 0.0;
+      ++cut;
+    }
+  }
+  ASSERT_GT(cut, 0);
+  ASSERT_EQ(model->Cut(sweep, state.get()), cut);
+  Randomise(state.get(), 0.003, 0.1, 11);
+  const mesh::Points reference = PlainForces(*model, *state, g.edges, k, d);
+  mesh::Points forces(3, model->num_nodes());
+  model->InternalForces(*state, &forces);
+  EXPECT_LT(RelativeDifference(forces, reference), 1e-12);
+  {
+    const ScalarPass scalar_pass;
+    model->InternalForces(*state, &forces);
+    EXPECT_LT(RelativeDifference(forces, reference), 1e-12);
+  }
+  StepInputs inputs;
+  inputs.dt = 1e-5;
+  const Attachment grasp{7, Vector3d(0.2, 0.1, 0.0), 40.0};  // node, target [m], k [N/m]
+  inputs.attachments = std::span<const Attachment>(&grasp, 1);
+  const mesh::Points x0 = state->positions, v0 = state->velocities;
+  mesh::Points dv = inputs.dt / p.node_mass * reference;
+  dv.col(grasp.node) += inputs.dt / p.node_mass * grasp.stiffness * (grasp.target - x0.col(7));
+  ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  EXPECT_LT(RelativeDifference(state->velocities - v0, dv), 1e-12);
   EXPECT_LT(RelativeDifference(state->positions, x0 + inputs.dt * (v0 + dv)), 1e-15);
 }
 
