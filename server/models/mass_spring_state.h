@@ -40,7 +40,7 @@ class MassSpringState final : public TissueState {
   // v_j) (x, y, z) and 0, the step's linearisation.
   std::vector<double> implicit_springs;
   std::vector<double> implicit_gather;  // 4 × P: records (x, y, z, 0) the sweeps read
-  std::vector<double> implicit_rows;  // per row of 8 slots: w_x[8], w_y[8], w_z[8], a[8]
+  std::vector<double> implicit_rows;    // per row of 8 slots: w_x[8], w_y[8], w_z[8], a[8]
   // Per lane (see MassSpringModel::implicit_node_): the diagonal blocks of A and their inverses
   // (xx, xy, xz, yy, yz, zz; 6 × P), 1 on free lanes and 0 on held ones or padding (P), and the
   // solver's vectors (3 × P each: x block, y block, z block).
