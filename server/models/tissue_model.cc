@@ -54,8 +54,7 @@ FlatCheck CheckFlat(const double* __restrict x, const double* __restrict v, size
 // which at 10 kHz on a 5400-node organ is a tenth of a mass-spring step with SSE2.
 __attribute__((target("avx512f"))) FlatCheck CheckFlatAvx512(const double* __restrict x,
                                                              const double* __restrict v,
-                                                             size_t count,
-                                                             double component_limit) {
+                                                             size_t count, double component_limit) {
   size_t k = 0;
   __mmask8 bad = 0, above = 0;
   const __m512d limit = _mm512_set1_pd(component_limit);
