@@ -39,6 +39,7 @@
 #include <span>
 #include <vector>
 
+#include "server/models/cpu_features.h"
 #include "server/models/mass_spring_model.h"
 #include "server/models/mass_spring_state.h"
 #include "server/models/particle_mesh.h"
@@ -54,11 +55,7 @@ constexpr size_t kLanes = 8;
 constexpr size_t kRecord = 8;   // doubles per spring in implicit_springs
 bool g_implicit_avx512 = true;  // NOLINT: a test switch, written only by tests
 
-bool UseAvx512() {
-  static const bool has =
-      __builtin_cpu_supports("avx512f") != 0 && __builtin_cpu_supports("avx512vl") != 0;
-  return g_implicit_avx512 && has;
-}
+bool UseAvx512() { return g_implicit_avx512 && CpuHasAvx512(); }
 
 // Raw views of the solver's layout (see MassSpringModel's implicit-step data).
 struct Layout {

@@ -38,6 +38,7 @@
 #include <string>
 #include <vector>
 
+#include "server/models/cpu_features.h"
 #include "server/models/generalised_surface.h"
 #include "server/models/mass_spring_state.h"
 #include "server/models/particle_mesh.h"
@@ -380,16 +381,8 @@ SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
   }
 }
 
-bool CpuHasAvx512() {
-  static const bool has = [] {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx512f") != 0;
-  }();
-  return has;
-}
 #else
 void SlicePassAvx512(const SlicePass& p) { SlicePassScalar(p); }
-bool CpuHasAvx512() { return false; }
 #endif
 
 // Tests switch the AVX-512 pass off to compare it with the scalar one

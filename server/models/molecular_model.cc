@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "server/models/cpu_features.h"
 #include "server/models/particle_mesh.h"
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -316,10 +317,6 @@ __attribute__((target("avx512f"))) void VectorTriangles(const double* x, const d
   }
 }
 
-bool CpuHasAvx512() {
-  static const bool has = __builtin_cpu_supports("avx512f") != 0;
-  return has;
-}
 #endif
 
 // Fills a CSR (num_nodes + 1 starts, then items) of the items touching each node; `nodes_of`

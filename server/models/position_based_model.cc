@@ -15,6 +15,7 @@
 
 #include "common/mesh/geometry.h"
 #include "common/mesh/topology.h"
+#include "server/models/cpu_features.h"
 #include "server/models/particle_mesh.h"
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -303,15 +304,6 @@ __attribute__((target("avx512f,avx512vl"))) void PredictAvx512(
   }
 }
 
-bool CpuHasAvx512() {
-  static const bool has = [] {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx512f") != 0 && __builtin_cpu_supports("avx512vl") != 0;
-  }();
-  return has;
-}
-#else
-bool CpuHasAvx512() { return false; }
 #endif
 
 [[noreturn]] void Refuse(const std::string& what) {

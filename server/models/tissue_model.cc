@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "server/models/cpu_features.h"
+
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
 #include <immintrin.h>
 #define SOMASIM_CHECK_AVX512 1
@@ -70,14 +72,6 @@ __attribute__((target("avx512f"))) FlatCheck CheckFlatAvx512(const double* __res
     result.maybe_too_fast = result.maybe_too_fast || std::abs(v[k]) > component_limit;
   }
   return result;
-}
-
-bool CpuHasAvx512() {
-  static const bool has = [] {
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx512f") != 0;
-  }();
-  return has;
 }
 #endif
 

@@ -419,19 +419,7 @@ void FemModel::InternalForces(const TissueState& state, mesh::Points* forces) co
 
 EnergyReport FemModel::Energy(const TissueState& state, const Eigen::Vector3d& gravity) const {
   EnergyReport report;
-  for (int32_t e = 0; e < num_tets(); ++e) {
-    Matrix3d r, strain, p;
-    ElementStress(state.positions, e, &r, &strain, &p);
-    const double v = elements_.volumes[static_cast<size_t>(e)];
-    if (kind_ == FemKind::kHyperelastic) {
-      report.elastic +=
-          v * StrainEnergy(material_, Matrix3d::Identity() + elements_.DisplacementGradient(
-                                                                 state.positions, rest_, e));
-      continue;
-    }
-    const double tr = strain.trace();
-    report.elastic += v * (mu_ * strain.squaredNorm() + 0.5 * lambda_ * tr * tr);
-  }
+  report.elastic = ElasticEnergy(state.positions, nullptr);
   AddKineticAndGravity(mass_, state, gravity, &report);
   return report;
 }

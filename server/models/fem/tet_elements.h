@@ -25,14 +25,6 @@ struct TetElements {
 
   int32_t num_tets() const { return static_cast<int32_t>(tets.cols()); }
   int32_t num_nodes() const { return static_cast<int32_t>(node_volume.size()); }
-  // The deformation gradient F = Σ_a x_a ∇N_aᵀ of element e at positions x (3 × num_nodes).
-  Eigen::Matrix3d DeformationGradient(const mesh::Points& x, int32_t e) const {
-    Eigen::Matrix3d f = Eigen::Matrix3d::Zero();
-    for (int a = 0; a < 4; ++a) {
-      f.noalias() += x.col(tets(a, e)) * gradients.col(4 * e + a).transpose();
-    }
-    return f;
-  }
   // The displacement gradient H = F - I = Σ_a (x_a - X_a) ∇N_aᵀ, from displacements so that a
   // small strain keeps its digits (F - I from positions loses them: |x| ≫ |x - X|).
   Eigen::Matrix3d DisplacementGradient(const mesh::Points& x, const mesh::Points& rest,

@@ -154,6 +154,23 @@ INSTANTIATE_TEST_SUITE_P(Fem, FemKinds, ::testing::Values(FemKind::kLinear, FemK
                                                                              : "Corotational");
                          });
 
+// A unit cube in uniaxial tension as component constraints: symmetry planes x = 0, y = 0, z = 0,
+// and with `pull` the face x = 1 held at x = stretch; `pulled` gets that face's nodes.
+std::vector<ComponentConstraint> UniaxialSupports(const mesh::TetMesh& cube, double stretch,
+                                                  bool pull, std::vector<int32_t>* pulled) {
+  std::vector<ComponentConstraint> held;
+  for (int32_t i = 0; i < static_cast<int32_t>(cube.vertices.cols()); ++i) {
+    for (int axis = 0; axis < 3; ++axis) {
+      if (cube.vertices(axis, i) < 1e-9) held.push_back({i, axis, 0.0});
+    }
+    if (cube.vertices(0, i) > 1.0 - 1e-9) {
+      if (pull) held.push_back({i, 0, stretch});
+      pulled->push_back(i);
+    }
+  }
+  return held;
+}
+
 // Uniaxial tension of a liver cube (seed 000's material, near its incompressible limit):
 // symmetry planes x = 0, y = 0, z = 0, the face x = 1 pulled to stretch λ, the rest free. The
 // analytic incompressible answer: Ī1 = λ² + 2/λ, Cauchy σ = 2 (λ² - 1/λ) W'(Ī1), nominal
@@ -165,17 +182,8 @@ TEST(FemHyperelastic, UniaxialStretchMatchesTheIncompressibleCurve) {
   const auto model = FemModel::FromTetMesh(cube, p);
   const HyperelasticMaterial& m = p.hyperelastic;
   for (const double stretch : {1.05, 1.15, 1.3}) {
-    std::vector<ComponentConstraint> held;
     std::vector<int32_t> pulled;
-    for (int32_t i = 0; i < model->num_nodes(); ++i) {
-      for (int axis = 0; axis < 3; ++axis) {
-        if (cube.vertices(axis, i) < 1e-9) held.push_back({i, axis, 0.0});
-      }
-      if (cube.vertices(0, i) > 1.0 - 1e-9) {
-        held.push_back({i, 0, stretch});
-        pulled.push_back(i);
-      }
-    }
+    const std::vector<ComponentConstraint> held = UniaxialSupports(cube, stretch, true, &pulled);
     StaticLoads loads;
     loads.components = held;
     loads.load_steps = 4;
@@ -195,23 +203,6 @@ TEST(FemHyperelastic, UniaxialStretchMatchesTheIncompressibleCurve) {
     const double lateral = state->positions.row(1).maxCoeff();
     EXPECT_NEAR(lateral, 1.0 / std::sqrt(stretch), 1e-3) << "stretch " << stretch;
   }
-}
-
-// The uniaxial cube of the test above, held at stretch λ (or loaded by a nominal stress), as a
-// list of component constraints; `pulled` gets the face x = 1.
-std::vector<ComponentConstraint> UniaxialSupports(const mesh::TetMesh& cube, double stretch,
-                                                  bool pull, std::vector<int32_t>* pulled) {
-  std::vector<ComponentConstraint> held;
-  for (int32_t i = 0; i < static_cast<int32_t>(cube.vertices.cols()); ++i) {
-    for (int axis = 0; axis < 3; ++axis) {
-      if (cube.vertices(axis, i) < 1e-9) held.push_back({i, axis, 0.0});
-    }
-    if (cube.vertices(0, i) > 1.0 - 1e-9) {
-      if (pull) held.push_back({i, 0, stretch});
-      pulled->push_back(i);
-    }
-  }
-  return held;
 }
 
 // Fung's QLV with seed 000's Prony series: after a step stretch held constant, the stress relaxes
