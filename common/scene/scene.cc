@@ -11,6 +11,7 @@
 #include <sstream>
 #include <string>
 
+#include "common/mesh/geometry.h"
 #include "common/mesh_gen/builtin_organs.h"
 
 namespace somasim::scene {
@@ -52,8 +53,15 @@ class FirstError final : public google::protobuf::io::ErrorCollector {
 class Where {
  public:
   Where(const std::string* file, const TextFormat::ParseInfoTree* tree, const Message* message,
-        std::string path, int line)
-      : file_(file), tree_(tree), message_(message), path_(std::move(path)), line_(line) {}
+        std::string path, int line, SceneLines* lines)
+      : file_(file),
+        tree_(tree),
+        message_(message),
+        path_(std::move(path)),
+        line_(line),
+        lines_(lines) {
+    if (lines_ != nullptr && !path_.empty()) lines_->Record(path_, line_);
+  }
 
   int LineOf(const char* field, int index = -1) const {
     const FieldDescriptor* fd = message_->GetDescriptor()->FindFieldByName(field);
@@ -74,7 +82,7 @@ class Where {
     if (tree_ != nullptr && fd != nullptr) {
       nested = tree_->GetTreeForNested(fd, fd->is_repeated() ? index : -1);
     }
-    return {file_, nested, &child, PathOf(field, index), LineOf(field, index)};
+    return {file_, nested, &child, PathOf(field, index), LineOf(field, index), lines_};
   }
   [[noreturn]] void Fail(const char* field, const std::string& message, int index = -1) const {
     throw SceneError(*file_, LineOf(field, index), PathOf(field, index), message);
@@ -100,6 +108,7 @@ class Where {
   const Message* message_;
   std::string path_;
   int line_;
+  SceneLines* lines_;
 };
 
 void CheckRegion(const Where& w, const Region& region) {
@@ -265,8 +274,11 @@ void CheckScene(const Where& s, const Scene& scene) {
       case Load::kDisplacement:
         l.Finite("displacement", load.displacement());
         break;
+      case Load::kPressure:
+        if (!std::isfinite(load.pressure())) l.Fail("pressure", "must be finite");
+        break;
       case Load::KIND_NOT_SET:
-        l.FailHere("needs a force or a displacement");
+        l.FailHere("needs a force, a displacement or a pressure");
     }
     for (int h = 0; h < load.history_size(); ++h) {
       const Where p = l.Child("history", load.history(h), h);
@@ -318,7 +330,23 @@ SceneError::SceneError(const std::string& file, int line, const std::string& fie
       line_(line),
       field_(field) {}
 
-Scene ParseScene(std::string_view text, const std::string& file_name) {
+int SceneLines::LineOf(const std::string& field) const {
+  std::string f = field;
+  while (!f.empty()) {
+    const auto it = lines_.find(f);
+    if (it != lines_.end()) return it->second;
+    const size_t cut = f.find_last_of(".[");
+    if (cut == std::string::npos) break;
+    f.resize(cut);
+  }
+  return 0;
+}
+
+SceneError SceneLines::Error(const std::string& field, const std::string& message) const {
+  return {file_, LineOf(field), field, message};
+}
+
+Scene ParseScene(std::string_view text, const std::string& file_name, SceneLines* lines) {
   Scene scene;
   TextFormat::Parser parser;
   FirstError errors;
@@ -332,17 +360,66 @@ Scene ParseScene(std::string_view text, const std::string& file_name) {
         file_name, std::max(errors.line(), 0), "",
         text.size() > (1u << 26) ? "larger than 64 MiB: not a scene" : errors.message());
   }
-  CheckScene(Where(&file_name, &tree, &scene, "", 1), scene);
+  if (lines != nullptr) *lines = SceneLines(file_name);
+  CheckScene(Where(&file_name, &tree, &scene, "", 1, lines), scene);
   return scene;
 }
 
-Scene LoadSceneFile(const std::string& path) {
+Scene LoadSceneFile(const std::string& path, SceneLines* lines) {
   std::ifstream in(path, std::ios::binary);
   if (!in) throw SceneError(path, 0, "", "cannot open the file");
   std::ostringstream text;
   text << in.rdbuf();
   if (in.bad()) throw SceneError(path, 0, "", "cannot read the file");
-  return ParseScene(text.str(), path);
+  return ParseScene(text.str(), path, lines);
+}
+
+Scene DefaultScene(std::string_view organ) {
+  const mesh_gen::BuiltinOrganSpec* spec = mesh_gen::FindBuiltinOrgan(organ);
+  if (spec == nullptr) {
+    throw std::invalid_argument("unknown organ \"" + std::string(organ) +
+                                "\"; built in: " + mesh_gen::BuiltinOrganNames());
+  }
+  const bool sheet = spec->kind == mesh_gen::OrganKind::kOpenSurface;
+  const mesh::Points rest = sheet ? mesh_gen::GenerateBuiltinOrgan(spec->name).surface.vertices
+                                  : mesh_gen::GenerateBuiltinOrganVolume(spec->name).vertices;
+  const mesh::BoundingBox box = mesh::ComputeBoundingBox(rest);
+  const Eigen::Vector3d size = box.max - box.min;
+  Scene scene;
+  scene.set_format_version(kSceneFormatVersion);
+  scene.set_name("builtin:" + std::string(spec->name));
+  Organ* o = scene.add_organ();
+  o->set_id(std::string(spec->name));
+  o->set_builtin(std::string(spec->name));
+  Material* m = o->mutable_material();
+  m->set_density(1000.0);  // [kg/m³]
+  // Soft tissue, E >= 5 kPa, and at least 20 ρ g L (L the longest side) so that the weight strains
+  // the body by a few per cent at most: the small strains the corotational model is right for
+  // (a 5 kPa liver on a table lets its lobes flop by 15 cm, which needs fem_hyperelastic).
+  // liver4055: 46 kPa; SOFA's 16 m beam: 3.1 MPa.
+  m->set_youngs_modulus(std::max(5e3, 20.0 * 1000.0 * 9.81 * size.maxCoeff()));  // [Pa]
+  if (sheet) {
+    o->mutable_model()->mutable_mass_spring()->set_implicit(true);
+    o->mutable_model()->set_dt(1e-3);
+    m->set_damping_ratio(0.5);  // settles within the second
+    scene.mutable_analysis()->mutable_dynamic()->set_end_time(1.0);
+  } else {
+    o->mutable_model()->mutable_fem_corotational();
+    m->set_poisson_ratio(0.45);
+    scene.mutable_analysis()->mutable_static_solve()->set_load_steps(2);
+  }
+  // Resting on a table: everything within 10 % of the height from the lowest z is held (a
+  // margin of one diagonal around the other axes). The patch is held along its lowest-x edge.
+  const double margin = size.norm();
+  Box* held = o->add_fixed()->mutable_box();
+  held->mutable_min()->set_x(box.min.x() - margin);
+  held->mutable_min()->set_y(box.min.y() - margin);
+  held->mutable_min()->set_z(box.min.z() - margin);
+  held->mutable_max()->set_x(sheet ? box.min.x() + 0.1 * size.x() : box.max.x() + margin);
+  held->mutable_max()->set_y(box.max.y() + margin);
+  held->mutable_max()->set_z(sheet ? box.max.z() + margin : box.min.z() + 0.1 * size.z());
+  scene.mutable_gravity()->set_z(-9.81);  // [m/s²]
+  return scene;
 }
 
 }  // namespace somasim::scene

@@ -5,6 +5,7 @@
 // select no node) is checked when the scene is built.
 #pragma once
 
+#include <map>
 #include <stdexcept>
 #include <string>
 #include <string_view>
@@ -30,9 +31,36 @@ class SceneError : public std::runtime_error {
   std::string field_;
 };
 
-// Parses and checks a scene in protobuf text format; `file_name` names it in errors.
-Scene ParseScene(std::string_view text, const std::string& file_name);
+// Where a scene's messages were written, so that faults found later (when the scene is built on
+// its meshes) still name the file, the line and the field.
+class SceneLines {
+ public:
+  SceneLines() = default;
+  explicit SceneLines(std::string file) : file_(std::move(file)) {}
+  const std::string& file() const { return file_; }
+  void Record(const std::string& field, int line) { lines_.emplace(field, line); }
+  // The line of `field` (e.g. "organ[0].fixed[1].box"), or of its nearest recorded parent; 0
+  // when none is known.
+  int LineOf(const std::string& field) const;
+  SceneError Error(const std::string& field, const std::string& message) const;
+
+ private:
+  std::string file_;
+  std::map<std::string, int> lines_;
+};
+
+// Parses and checks a scene in protobuf text format; `file_name` names it in errors. `lines`,
+// when given, receives where each message was written.
+Scene ParseScene(std::string_view text, const std::string& file_name, SceneLines* lines = nullptr);
 // Reads and parses the file at `path`.
-Scene LoadSceneFile(const std::string& path);
+Scene LoadSceneFile(const std::string& path, SceneLines* lines = nullptr);
+
+// The default scene of a built-in organ (`builtin:NAME` on the command line): volume organs and
+// closed surfaces as a corotational FEM (ρ = 1000 kg/m³, ν = 0.45, E = max(5 kPa, 20 ρ g L), L
+// the longest side, so that the weight strains the body by a few per cent: the corotational
+// model's range) resting on a table (the lowest 10 % of their height held) under gravity (-z),
+// in a static solve of two load steps; the open patch as an implicit mass-spring sheet held along
+// its lowest-x edge, 1 s of dynamics. Throws std::invalid_argument for an unknown organ.
+Scene DefaultScene(std::string_view organ);
 
 }  // namespace somasim::scene

@@ -1,11 +1,8 @@
 // somasim-mesh: what `info`, `convert`, `tetrahedralize`, `list` and `generate` print and
 // return, in-process and through the real executable (exit codes, JSON keys of SPEC §6).
 #include <gtest/gtest.h>
-#include <sys/wait.h>
 
-#include <array>
 #include <cmath>
-#include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <limits>
@@ -17,34 +14,15 @@
 #include "common/mesh_io/mesh_io.h"
 #include "common/tools/mesh_commands.h"
 #include "tests/support/mesh_fixtures.h"
+#include "tests/support/run_program.h"
 
 namespace somasim::tools {
 namespace {
 
-struct ToolRun {
-  int status = -1;
-  std::string out;
-};
+using testing::ToolRun;
 
-// Runs build/bin/somasim-mesh with arguments (quoted by the caller), stdout captured,
-// stderr appended to it.
-ToolRun RunTool(const std::string& args) {
-  // CTest sets SOMASIM_BIN_DIR; run by hand, the tool sits beside this test in build/bin.
-  const char* env = std::getenv("SOMASIM_BIN_DIR");
-  const std::string bin =
-      env != nullptr ? std::string(env)
-                     : std::filesystem::read_symlink("/proc/self/exe").parent_path().string();
-  const std::string command = bin + "/somasim-mesh " + args + " 2>&1";
-  ToolRun run;
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return run;
-  std::array<char, 4096> buffer;
-  size_t n = 0;
-  while ((n = fread(buffer.data(), 1, buffer.size(), pipe)) > 0) run.out.append(buffer.data(), n);
-  const int status = pclose(pipe);
-  run.status = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return run;
-}
+// Runs build/bin/somasim-mesh with arguments (quoted by the caller).
+ToolRun RunTool(const std::string& args) { return testing::RunProgram("somasim-mesh", args); }
 
 TEST(SomasimMeshInfo, JsonHasTheSpecKeysInMetres) {
   const ToolRun run = RunTool("info --json --unit cm " + testing::SharedMesh("liver.msh"));

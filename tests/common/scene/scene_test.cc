@@ -3,6 +3,7 @@
 // organs and references, histories that go back in time — and never half-loaded.
 #include "common/scene/scene.h"
 
+#include <google/protobuf/text_format.h>
 #include <gtest/gtest.h>
 
 #include <string>
@@ -105,6 +106,7 @@ TEST(Scene, RefusesBadValuesNamingTheField) {
   ExpectRefused(Edit("unit: \"mm\"", "unit: \"inch\""), 13, "organ[1].unit", "m, cm or mm");
   ExpectRefused(Edit("id: 3 id: 4", "id: 3 id: -4"), 19, "load[0].region.nodes.id[1]", ">= 0");
   ExpectRefused(Edit("force { z: -0.5 }", "force { z: inf }"), 20, "load[0].force", "finite");
+  ExpectRefused(Edit("force { z: -0.5 }", "pressure: nan"), 20, "load[0].pressure", "finite");
   ExpectRefused(Edit("gravity { z: -9.81 }", "gravity { z: nan }"), 24, "gravity", "finite");
   ExpectRefused(Edit("end_time: 2 dt: 0.1", "end_time: 2 dt: 0"), 25, "analysis.quasi_static.dt",
                 "> 0");
@@ -152,6 +154,36 @@ TEST(Scene, EveryTruncationIsRefusedOrComplete) {
     }
   }
   EXPECT_GT(refused, static_cast<int>(text.size()) / 2);
+}
+
+TEST(SceneLines, NameTheLineOfAFieldOrOfItsNearestParent) {
+  SceneLines lines;
+  ParseScene(kGood, "good.scene.txtpb", &lines);
+  EXPECT_EQ(lines.file(), "good.scene.txtpb");
+  EXPECT_EQ(lines.LineOf("organ[1]"), 10);
+  EXPECT_EQ(lines.LineOf("organ[0].fixed[0]"), 8);
+  EXPECT_EQ(lines.LineOf("organ[0].fixed[0].sphere.radius"), 8);  // its parent's line
+  EXPECT_EQ(lines.LineOf("load[0].region.nodes.id[7]"), 19);
+  EXPECT_EQ(lines.LineOf("nothing.here"), 0);
+  const SceneError e = lines.Error("load[0].region", "selects no node");
+  EXPECT_STREQ(e.what(), "good.scene.txtpb:19: load[0].region: selects no node");
+}
+
+TEST(DefaultScene, EveryBuiltinOrganHasAValidOne) {
+  for (const char* organ : {"liver4055", "liver", "plate192", "tissue45", "spleen600", "beam19k"}) {
+    const Scene scene = DefaultScene(organ);
+    std::string text;
+    ASSERT_TRUE(google::protobuf::TextFormat::PrintToString(scene, &text));
+    const Scene again = ParseScene(text, std::string("builtin:") + organ);  // passes every check
+    EXPECT_EQ(again.organ_size(), 1);
+    EXPECT_TRUE(again.organ(0).fixed_size() == 1) << organ;
+    EXPECT_GE(again.organ(0).material().youngs_modulus(), 5e3) << organ;
+  }
+  EXPECT_TRUE(DefaultScene("tissue45").analysis().has_dynamic());
+  EXPECT_TRUE(DefaultScene("kidney424").analysis().has_static_solve());
+  EXPECT_NEAR(DefaultScene("beam19k").organ(0).material().youngs_modulus(),
+              20.0 * 1000.0 * 9.81 * 16.0, 1e-6);  // the 16 m beam: stiffened
+  EXPECT_THROW(DefaultScene("heart9"), std::invalid_argument);
 }
 
 TEST(Scene, RefusesAFileItCannotRead) {
