@@ -150,7 +150,7 @@ class History {
     const mesh::Points& rest = run_.organ.rest();
     file_ << t << "," << MaxDisplacement(x, rest);
     for (const AppliedLoad& l : run_.loads) file_ << "," << MeanDisplacement(x, rest, l.nodes);
-    file_ << "\n";
+    file_ << std::endl;  // flushed: a long run can be watched (tail -f)
   }
   void Close(const std::string& path) {
     if (!file_.is_open()) return;

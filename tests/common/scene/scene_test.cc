@@ -77,10 +77,13 @@ TEST(Scene, LoadsEveryField) {
 }
 
 TEST(Scene, TheExampleScenesLoad) {
-  const Scene scene =
-      LoadSceneFile(std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/liver_creep.scene.txtpb");
-  EXPECT_EQ(scene.organ(0).builtin(), "liver4055");
-  EXPECT_TRUE(scene.organ(0).material().liver_nava2008_prony());
+  for (const char* name : {"liver_creep", "liver_creep_half"}) {
+    const Scene scene = LoadSceneFile(std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/" + name +
+                                      ".scene.txtpb");
+    EXPECT_EQ(scene.organ(0).builtin(), "liver4055");
+    EXPECT_TRUE(scene.organ(0).material().liver_nava2008_prony());
+    EXPECT_EQ(scene.load(0).region().nodes().id(0), 1738);
+  }
 }
 
 TEST(Scene, RefusesSyntaxErrorsWithTheirLine) {
