@@ -17,7 +17,13 @@ class BlockSparseMatrix {
  public:
   BlockSparseMatrix() = default;
   // The pattern: row i holds a block for i and for every node sharing a tetrahedron with i.
-  static BlockSparseMatrix FromTets(const mesh::Tetrahedra& tets, int32_t num_nodes);
+  // With `upper`, only the blocks ij with j >= i are stored (half the memory, which is what a
+  // product streams): the matrix is then symmetric by definition, block ji being block ijᵀ, and
+  // element_block is -1 for a block left out. Multiply and the diagonal blocks work on both;
+  // ScalarLower needs the full pattern.
+  static BlockSparseMatrix FromTets(const mesh::Tetrahedra& tets, int32_t num_nodes,
+                                    bool upper = false);
+  bool upper() const { return upper_; }
 
   int32_t num_nodes() const { return static_cast<int32_t>(row_start_.size()) - 1; }
   int32_t num_blocks() const { return static_cast<int32_t>(columns_.size()); }
@@ -26,6 +32,10 @@ class BlockSparseMatrix {
     return element_blocks_[16 * static_cast<size_t>(e) + 4 * static_cast<size_t>(a) +
                            static_cast<size_t>(b)];
   }
+  // All element_block values (16 × num_tets, element-major) and all block values (9 ×
+  // num_blocks), for kernels that walk them in bulk.
+  const int32_t* element_blocks() const { return element_blocks_.data(); }
+  double* values() { return values_.data(); }
   int32_t diagonal_block(int32_t node) const { return diagonal_[static_cast<size_t>(node)]; }
   // Block k, 3×3 column-major [unit of the matrix].
   Eigen::Map<Eigen::Matrix3d> block(int32_t k) {
@@ -37,11 +47,20 @@ class BlockSparseMatrix {
   void SetZero() { std::fill(values_.begin(), values_.end(), 0.0); }
   // y = A x (3 × num_nodes each, flat). With `constrained` (num_nodes, or null): rows and columns
   // of constrained nodes are replaced by the identity.
+  // Takes an AVX-512 path where the CPU has it (equal to the scalar one up to rounding).
   void Multiply(const double* x, double* y, const uint8_t* constrained) const;
+  // Tests: take the scalar path of Multiply even where AVX-512 is available.
+  void set_force_scalar(bool scalar) { force_scalar_ = scalar; }
   // The matrix restricted to the unconstrained nodes' DOFs as a scalar lower triangle, numbered
   // by `dof` (3 × num_nodes, -1 where constrained; free DOFs 0..num_dofs-1 in node order).
   // Allocates: for static solves.
   LowerCsc ScalarLower(const std::vector<int32_t>& dof, int32_t num_dofs) const;
+  // ScalarLower in two parts, so that a sequence of matrices of one pattern is converted without
+  // sorting: the pattern (values left zero) and, in `source`, the index into this matrix's block
+  // storage of each value (allocates), then the values (allocates nothing).
+  LowerCsc ScalarLowerPattern(const std::vector<int32_t>& dof, int32_t num_dofs,
+                              std::vector<int32_t>* source) const;
+  void FillScalarLower(const std::vector<int32_t>& source, LowerCsc* lower) const;
 
  private:
   std::vector<int32_t> row_start_;       // num_nodes + 1
@@ -49,6 +68,8 @@ class BlockSparseMatrix {
   std::vector<int32_t> diagonal_;        // num_nodes: index of block (i, i)
   std::vector<int32_t> element_blocks_;  // 16 × num_tets
   std::vector<double> values_;           // 9 × num_blocks
+  bool force_scalar_ = false;
+  bool upper_ = false;
 };
 
 // Scratch for ConjugateGradients, sized once (3 × num_nodes vectors, 9 × num_nodes inverse

@@ -75,10 +75,14 @@ class FemState final : public TissueState {
  public:
   BlockSparseMatrix matrix;  // A = (1 + dt α) M + (dt² + dt β) K
   CgScratch cg;
-  std::vector<double> rotations;       // 9 × num_tets, column-major R per element
+  std::vector<double> rotations;  // 9 × num_tets, column-major R per element
+  // 4 × num_tets: R per element as (w, x, y, z), the next step's warm starts (they change its
+  // result by rounding only, but a rollback restores them too, so that replays are bit-exact).
+  std::vector<double> quaternions, good_quaternions;
   mesh::Points forces, rhs, dv, temp;  // 3 × num_nodes
-  std::vector<uint8_t> constrained;    // num_nodes
-  double last_cg_residual = 0.0;       // |r| / |b| of the last step's solve
+  mesh::Points good_dv;  // dv of the last accepted step: CG's warm start, restored on rollback
+  std::vector<uint8_t> constrained;  // num_nodes
+  double last_cg_residual = 0.0;     // |r| / |b| of the last step's solve
   // QLV internal variables h_k (9 × num_prony × num_tets, element-major), the elastic stress of
   // the last accepted step S^e (9 × num_tets), a step's offset (9 × num_tets), and the copies
   // a rejected step restores.
@@ -86,10 +90,14 @@ class FemState final : public TissueState {
 
  protected:
   void SaveGood() override {
+    good_dv = dv;  // same size: no allocation
+    std::copy(quaternions.begin(), quaternions.end(), good_quaternions.begin());
     std::copy(history.begin(), history.end(), good_history.begin());
     std::copy(elastic_last.begin(), elastic_last.end(), good_elastic_last.begin());
   }
   void RestoreGood() override {
+    dv = good_dv;
+    std::copy(good_quaternions.begin(), good_quaternions.end(), quaternions.begin());
     std::copy(good_history.begin(), good_history.end(), history.begin());
     std::copy(good_elastic_last.begin(), good_elastic_last.end(), elastic_last.begin());
   }
@@ -106,6 +114,9 @@ std::unique_ptr<FemModel> FemModel::FromTetMesh(const mesh::TetMesh& mesh,
   model->elements_ = BuildTetElements(mesh, "fem");
   model->rest_ = mesh.vertices;
   model->pattern_ = BlockSparseMatrix::FromTets(mesh.tetrahedra, model->num_nodes());
+  if (parameters.kind != FemKind::kHyperelastic) {
+    model->upper_pattern_ = BlockSparseMatrix::FromTets(mesh.tetrahedra, model->num_nodes(), true);
+  }
   model->mass_.resize(model->elements_.node_volume.size());
   for (size_t i = 0; i < model->mass_.size(); ++i) {
     model->mass_[i] = parameters.density * model->elements_.node_volume[i];
@@ -133,13 +144,18 @@ std::unique_ptr<FemModel> FemModel::FromTetMesh(const mesh::TetMesh& mesh,
 std::unique_ptr<TissueState> FemModel::MakeState() const {
   auto state = std::make_unique<FemState>();
   InitialiseState(rest_, state.get());
-  state->matrix = pattern_;
+  state->matrix = kind_ == FemKind::kHyperelastic ? pattern_ : upper_pattern_;
   state->cg = CgScratch(num_nodes());
   state->rotations.assign(9 * static_cast<size_t>(num_tets()), 0.0);
   for (size_t e = 0; e < static_cast<size_t>(num_tets()); ++e) {
     Eigen::Map<Matrix3d>(state->rotations.data() + 9 * e).setIdentity();
   }
-  for (mesh::Points* p : {&state->forces, &state->rhs, &state->dv, &state->temp}) {
+  // Warm starts for the corotational model's rotations (the others have none).
+  const size_t rotated = kind_ == FemKind::kCorotational ? static_cast<size_t>(num_tets()) : 0;
+  state->quaternions.assign(4 * rotated, 0.0);
+  for (size_t e = 0; e < rotated; ++e) state->quaternions[4 * e] = 1.0;
+  state->good_quaternions = state->quaternions;
+  for (mesh::Points* p : {&state->forces, &state->rhs, &state->dv, &state->temp, &state->good_dv}) {
     *p = mesh::Points::Zero(3, num_nodes());
   }
   state->constrained.assign(static_cast<size_t>(num_nodes()), 0);
@@ -167,7 +183,7 @@ void FemModel::ElementStress(const mesh::Points& x, int32_t e, Matrix3d* rotatio
   const bool has_offset = viscous != nullptr && viscous->offset != nullptr;
   if (kind_ == FemKind::kHyperelastic) {
     rotation->setIdentity();
-    *strain = 0.5 * (h + h.transpose() + h.transpose() * h);  // Green's E, for diagnostics
+    strain->setZero();  // no caller reads it for this model (ElasticEnergy has its own E)
     const Matrix3d f = Matrix3d::Identity() + h;
     *stress = FirstPiolaStress(material_, f);
     if (viscous != nullptr) {  // P = F (g S^e + offset) = g P^e + F offset
@@ -182,7 +198,8 @@ void FemModel::ElementStress(const mesh::Points& x, int32_t e, Matrix3d* rotatio
     rotation->setIdentity();
     *strain = 0.5 * (h + h.transpose());
   } else {
-    *rotation = PolarRotation(Matrix3d::Identity() + h);
+    double identity[4] = {1.0, 0.0, 0.0, 0.0};  // a cold start (PolarRotationFrom)
+    *rotation = PolarRotationFrom(Matrix3d::Identity() + h, identity);
     // S - I = Rᵀ (I + H) - I = (Rᵀ - I) + Rᵀ H, symmetric up to rounding.
     const Matrix3d s_minus_i =
         (rotation->transpose() - Matrix3d::Identity()) + rotation->transpose() * h;
@@ -246,15 +263,20 @@ ViscousStep FemModel::BeginViscousStep(const TissueState& base, double dt, doubl
   }
   step.g += 1.0 - gamma_sum;  // γ∞
   const size_t m = static_cast<size_t>(num_tets()), terms = prony_.size();
+  // e^{-dt/τ_k} and γ_k β_k, the same for every element (at most kMaxPronyTerms).
+  double decay[kMaxPronyTerms] = {}, weight[kMaxPronyTerms] = {};
+  for (size_t k = 0; k < terms; ++k) {
+    double beta = 0.0;
+    PronyFactors(prony_[k], dt, &decay[k], &beta);
+    weight[k] = prony_[k].gamma * beta;
+  }
   for (size_t e = 0; e < m; ++e) {
     Eigen::Map<Matrix3d> out(offset + 9 * e);
     out.setZero();
     const Eigen::Map<const Matrix3d> last(state.elastic_last.data() + 9 * e);
     for (size_t k = 0; k < terms; ++k) {
-      double decay = 0.0, beta = 0.0;
-      PronyFactors(prony_[k], dt, &decay, &beta);
-      out += decay * Eigen::Map<const Matrix3d>(state.history.data() + 9 * (e * terms + k)) -
-             prony_[k].gamma * beta * last;
+      out += decay[k] * Eigen::Map<const Matrix3d>(state.history.data() + 9 * (e * terms + k)) -
+             weight[k] * last;
     }
   }
   step.offset = offset;
@@ -264,14 +286,18 @@ ViscousStep FemModel::BeginViscousStep(const TissueState& base, double dt, doubl
 void FemModel::EndViscousStep(double dt, TissueState* base) const {
   auto* state = static_cast<FemState*>(base);
   const size_t m = static_cast<size_t>(num_tets()), terms = prony_.size();
+  double decay[kMaxPronyTerms] = {}, weight[kMaxPronyTerms] = {};
+  for (size_t k = 0; k < terms; ++k) {
+    double beta = 0.0;
+    PronyFactors(prony_[k], dt, &decay[k], &beta);
+    weight[k] = prony_[k].gamma * beta;
+  }
   for (size_t e = 0; e < m; ++e) {
     const Matrix3d now = ElasticStress(state->positions, static_cast<int32_t>(e));
     Eigen::Map<Matrix3d> last(state->elastic_last.data() + 9 * e);
     for (size_t k = 0; k < terms; ++k) {
-      double decay = 0.0, beta = 0.0;
-      PronyFactors(prony_[k], dt, &decay, &beta);
       Eigen::Map<Matrix3d> h(state->history.data() + 9 * (e * terms + k));
-      h = decay * h + prony_[k].gamma * beta * (now - last);  // exact for linear S^e over dt
+      h = decay[k] * h + weight[k] * (now - last);  // exact for linear S^e over dt
     }
     last = now;
   }
@@ -295,6 +321,161 @@ void FemModel::ElasticForces(const mesh::Points& x, double* forces, double* rota
   }
 }
 
+namespace {
+
+// ForcesAndWarpedMatrix's pass over the elements, on raw arrays. (Compiled for AVX-512 and FMA
+// too it was no faster: it waits on the scattered block updates, not on arithmetic.)
+struct WarpedPass {
+  const double* x;                // 3 × num_nodes
+  const double* rest;             // 3 × num_nodes
+  const int32_t* tets;            // 4 × num_tets
+  const double* gradients;        // 12 × num_tets
+  const double* volumes;          // num_tets
+  const double* rotations;        // 9 × num_tets
+  const double* offset;           // 9 × num_tets, or null
+  const int32_t* element_blocks;  // 16 × num_tets
+  double* forces;                 // 3 × num_nodes, accumulated
+  double* values;                 // the matrix's blocks, accumulated
+  size_t num_tets;
+  double g, lambda, mu, k_scale;
+  bool linear;
+};
+
+void ElementPass(const WarpedPass& a) {
+  const double g = a.g, lambda = a.lambda, mu = a.mu;
+  const double k_g = a.k_scale * g;  // a viscous step's stiffness is g times the elastic one
+  for (size_t e = 0; e < a.num_tets; ++e) {
+    const double* grad = a.gradients + 12 * e;  // ∇N_a at grad + 3a
+    const double* rot = a.rotations + 9 * e;    // column-major R
+    const int32_t* node = a.tets + 4 * e;
+    // H = F - I = Σ_a (x_a - X_a) ∇N_aᵀ (ElementStress), h[i][j] = H(i, j).
+    double h[3][3] = {};
+    for (int c0 = 0; c0 < 4; ++c0) {
+      const auto k = 3 * static_cast<size_t>(node[c0]);
+      for (int i = 0; i < 3; ++i) {
+        const double u = a.x[k + static_cast<size_t>(i)] - a.rest[k + static_cast<size_t>(i)];
+        for (int j = 0; j < 3; ++j) h[i][j] += u * grad[3 * c0 + j];
+      }
+    }
+    // ε: linear sym(H); corotational sym((Rᵀ - I) + Rᵀ H) (ElementStress).
+    double eps[3][3];
+    if (a.linear) {
+      for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) eps[i][j] = 0.5 * (h[i][j] + h[j][i]);
+      }
+    } else {
+      double s[3][3];  // S - I = Rᵀ - I + Rᵀ H
+      for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) {
+          double v = rot[3 * i + j] - (i == j ? 1.0 : 0.0);  // Rᵀ(i, j) = R(j, i)
+          for (int k = 0; k < 3; ++k) v += rot[3 * i + k] * h[k][j];
+          s[i][j] = v;
+        }
+      }
+      for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) eps[i][j] = 0.5 * (s[i][j] + s[j][i]);
+      }
+    }
+    // σ = g (λ tr ε I + 2 μ ε) + offset, P = R σ.
+    const double tr = eps[0][0] + eps[1][1] + eps[2][2];
+    double sigma[3][3];
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) {
+        sigma[i][j] = g * (2.0 * mu * eps[i][j] + (i == j ? lambda * tr : 0.0));
+      }
+    }
+    if (a.offset != nullptr) {
+      const double* c = a.offset + 9 * e;  // column-major
+      for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) sigma[i][j] += c[3 * j + i];
+      }
+    }
+    double p[3][3];
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) {
+        p[i][j] = rot[i] * sigma[0][j] + rot[3 + i] * sigma[1][j] + rot[6 + i] * sigma[2][j];
+      }
+    }
+    const double volume = a.volumes[e];
+    // f_a = -V P ∇N_a; r_a = R ∇N_a for the blocks.
+    double r[4][3];
+    for (int c0 = 0; c0 < 4; ++c0) {
+      const double* ga = grad + 3 * c0;
+      double* out = a.forces + 3 * static_cast<size_t>(node[c0]);
+      for (int i = 0; i < 3; ++i) {
+        out[i] -= volume * (p[i][0] * ga[0] + p[i][1] * ga[1] + p[i][2] * ga[2]);
+        r[c0][i] = rot[i] * ga[0] + rot[3 + i] * ga[1] + rot[6 + i] * ga[2];
+      }
+    }
+    // The warped blocks as AssembleWarped: R K_ab Rᵀ = V (λ r_a r_bᵀ + μ r_b r_aᵀ + μ (∇N_a·∇N_b)
+    // I).
+    const double v = k_g * volume;
+    const double cl = v * lambda, cm = v * mu;
+    for (int c0 = 0; c0 < 4; ++c0) {
+      for (int b = 0; b < 4; ++b) {
+        const int32_t block = a.element_blocks[16 * e + static_cast<size_t>(4 * c0 + b)];
+        if (block < 0) continue;  // upper storage: the transpose of (b, a)
+        const double* ga = grad + 3 * c0;
+        const double* gb = grad + 3 * b;
+        const double diagonal = cm * (ga[0] * gb[0] + ga[1] * gb[1] + ga[2] * gb[2]);
+        double* out = a.values + 9 * static_cast<size_t>(block);
+        for (int c = 0; c < 3; ++c) {
+          for (int i = 0; i < 3; ++i) {
+            out[3 * c + i] += cl * r[c0][i] * r[b][c] + cm * r[b][i] * r[c0][c];
+          }
+          out[4 * c] += diagonal;
+        }
+      }
+    }
+  }
+}
+
+}  // namespace
+
+void FemModel::ForcesAndWarpedMatrix(const mesh::Points& x, double* forces, double* rotations,
+                                     double* quaternions, const ViscousStep* viscous,
+                                     double k_scale, double m_scale,
+                                     BlockSparseMatrix* matrix) const {
+  assert(kind_ != FemKind::kHyperelastic);
+  const auto m = static_cast<size_t>(num_tets());
+  std::fill(forces, forces + 3 * static_cast<size_t>(num_nodes()), 0.0);
+  matrix->SetZero();
+  // The rotations first, in batches (PolarRotations): F of each element into `rotations`,
+  // turned into R in place.
+  for (size_t e = 0; e < m; ++e) {
+    Eigen::Map<Matrix3d> out(rotations + 9 * e);
+    if (kind_ == FemKind::kLinear) {
+      out.setIdentity();
+    } else {
+      out =
+          Matrix3d::Identity() + elements_.DisplacementGradient(x, rest_, static_cast<int32_t>(e));
+    }
+  }
+  if (kind_ == FemKind::kCorotational) PolarRotations(rotations, quaternions, rotations, m);
+  WarpedPass pass{};
+  pass.x = x.data();
+  pass.rest = rest_.data();
+  pass.tets = elements_.tets.data();
+  pass.gradients = elements_.gradients.data();
+  pass.volumes = elements_.volumes.data();
+  pass.rotations = rotations;
+  pass.offset = viscous != nullptr ? viscous->offset : nullptr;
+  pass.element_blocks = matrix->element_blocks();
+  pass.forces = forces;
+  pass.values = matrix->values();
+  pass.num_tets = m;
+  pass.g = viscous != nullptr ? viscous->g : 1.0;
+  pass.lambda = lambda_;
+  pass.mu = mu_;
+  pass.k_scale = k_scale;
+  pass.linear = kind_ == FemKind::kLinear;
+  ElementPass(pass);
+  for (int32_t i = 0; i < num_nodes(); ++i) {
+    matrix->block(matrix->diagonal_block(i)).diagonal().array() +=
+        m_scale * mass_[static_cast<size_t>(i)];
+  }
+}
+
 void FemModel::AssembleWarped(const mesh::Points& x, const double* rotations, double scale,
                               double mass_scale, BlockSparseMatrix* matrix,
                               const ViscousStep* viscous) const {
@@ -307,17 +488,39 @@ void FemModel::AssembleWarped(const mesh::Points& x, const double* rotations, do
       const Eigen::Matrix<double, 12, 12> k = ElementTangent(x, e, true, viscous);
       for (int a = 0; a < 4; ++a) {
         for (int b = 0; b < 4; ++b) {
+          if (matrix->element_block(e, a, b) < 0) continue;
           matrix->block(matrix->element_block(e, a, b)).noalias() +=
               scale * k.block<3, 3>(3 * a, 3 * b);
         }
       }
       continue;
     }
-    const Eigen::Map<const Matrix3d> r(rotations + 9 * static_cast<size_t>(e));
+    // R K_ab Rᵀ = V (λ r_a r_bᵀ + μ r_b r_aᵀ + μ (r_a·r_b) I) with the rotated gradients
+    // r_a = R ∇N_a (RestBlock's formula in the rotated frame; r_a·r_b = ∇N_a·∇N_b): 16 outer
+    // products instead of 32 3×3 matrix products.
+    const double* rot = rotations + 9 * static_cast<size_t>(e);  // column-major
+    const double* grad = elements_.gradients.data() + 12 * static_cast<size_t>(e);
+    double r[4][3];
+    for (int a = 0; a < 4; ++a) {
+      const double* g = grad + 3 * a;
+      for (int i = 0; i < 3; ++i) r[a][i] = rot[i] * g[0] + rot[3 + i] * g[1] + rot[6 + i] * g[2];
+    }
+    const double v = scale * elements_.volumes[static_cast<size_t>(e)];
+    const double cl = v * lambda_, cm = v * mu_;
     for (int a = 0; a < 4; ++a) {
       for (int b = 0; b < 4; ++b) {
-        matrix->block(matrix->element_block(e, a, b)).noalias() +=
-            scale * (r * RestBlock(e, a, b) * r.transpose());
+        const double* ga = grad + 3 * a;
+        const double* gb = grad + 3 * b;
+        const int32_t block = matrix->element_block(e, a, b);
+        if (block < 0) continue;  // upper storage: the transpose of (b, a)
+        const double diagonal = cm * (ga[0] * gb[0] + ga[1] * gb[1] + ga[2] * gb[2]);
+        double* out = matrix->block(block).data();
+        for (int c = 0; c < 3; ++c) {
+          for (int i = 0; i < 3; ++i) {
+            out[3 * c + i] += cl * r[a][i] * r[b][c] + cm * r[b][i] * r[a][c];
+          }
+          out[4 * c] += diagonal;
+        }
       }
     }
   }
@@ -330,8 +533,9 @@ void FemModel::AssembleWarped(const mesh::Points& x, const double* rotations, do
 Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, int32_t e, bool exact,
                                                        const ViscousStep* viscous) const {
   Eigen::Matrix<double, 12, 12> k;
-  Matrix3d r, strain, p;
-  ElementStress(x, e, &r, &strain, &p, viscous);
+  Matrix3d r = Matrix3d::Identity(), strain = Matrix3d::Zero(), p = Matrix3d::Zero();
+  // The stress enters the linear and corotational tangents only (the hyperelastic one is dP).
+  if (kind_ != FemKind::kHyperelastic) ElementStress(x, e, &r, &strain, &p, viscous);
   // A viscous step scales the elastic response by g and adds a constant offset stress:
   // hyperelastic dP = g dP^e + dF offset; rotated frame d(R (g σ + offset)).
   const double g = viscous != nullptr ? viscous->g : 1.0;
@@ -339,11 +543,53 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
   if (kind_ == FemKind::kHyperelastic) {
     const Matrix3d f = Matrix3d::Identity() + elements_.DisplacementGradient(x, rest_, e);
     const double v = elements_.volumes[static_cast<size_t>(e)];
+    const StressPoint point = PrepareStressDifferential(material_, f);  // once for 12 dF
+    if (material_.law == HyperelasticLaw::kReducedPolynomial) {
+      // dF = e_c ∇N_bᵀ is rank one, so StressDifferential's terms applied to ∇N_a reduce to
+      // vectors of the element: with A_a = a ∇N_a, Q_a = F⁻ᵀ ∇N_a, P_a = F ∇N_a,
+      //   F⁻ᵀ : dF = Q_b[c],  dI1 = 2 P_b[c],  dF⁻ᵀ ∇N_a = -Q_b Q_a[c],
+      //   da ∇N_a = 2 (∇N_a·∇N_b) e_c - (2/3) (dI1 Q_a - I1 Q_b Q_a[c]),
+      // and column (b, c) of the block (a, b) is V (g dP + dF offset) ∇N_a (~20 flops each instead
+      // of a 3 × 3 differential).
+      Vector3d ga[4], aa[4], qa[4], pa[4];
+      for (int a = 0; a < 4; ++a) {
+        ga[a] = elements_.gradients.col(4 * e + a);
+        aa[a] = point.a * ga[a];
+        qa[a] = point.f_inv_t * ga[a];
+        pa[a] = f * ga[a];
+      }
+      Vector3d offset_ga[4];  // offset ∇N_a
+      if (has_offset) {
+        const Eigen::Map<const Matrix3d> offset(viscous->offset + 9 * static_cast<size_t>(e));
+        for (int a = 0; a < 4; ++a) offset_ga[a] = offset * ga[a];
+      }
+      const double jj = point.j;
+      for (int b = 0; b < 4; ++b) {
+        for (int c = 0; c < 3; ++c) {
+          const double tr = qa[b][c];
+          const double d_i1 = 2.0 * pa[b][c];
+          const double dg = -(2.0 / 3.0) * point.g * tr;
+          const double d_i1_bar = dg * point.i1 + point.g * d_i1;
+          const double s_a = point.w2 * d_i1_bar * point.g + point.w1 * dg;
+          const double s_q = point.u2 * jj * tr * jj + point.u1 * jj * tr;
+          for (int a = 0; a < 4; ++a) {
+            Vector3d da = -(2.0 / 3.0) * (d_i1 * qa[a] - point.i1 * qa[a][c] * qa[b]);
+            da[c] += 2.0 * ga[a].dot(ga[b]);
+            Vector3d column = s_a * aa[a] + point.w1 * point.g * da + s_q * qa[a] -
+                              point.u1 * jj * qa[a][c] * qa[b];
+            column *= g;
+            if (has_offset) column[c] += ga[b].dot(offset_ga[a]);
+            k.block<3, 1>(3 * a, 3 * b + c) = v * column;
+          }
+        }
+      }
+      return k;
+    }
     for (int b = 0; b < 4; ++b) {
       const Vector3d gb = elements_.gradients.col(4 * e + b);
       for (int c = 0; c < 3; ++c) {
         const Matrix3d df = Vector3d::Unit(c) * gb.transpose();
-        Matrix3d dp = g * StressDifferential(material_, f, df);
+        Matrix3d dp = g * StressDifferential(point, df);
         if (has_offset) {
           dp += df * Eigen::Map<const Matrix3d>(viscous->offset + 9 * static_cast<size_t>(e));
         }
@@ -437,9 +683,11 @@ Eigen::Matrix3d FemModel::LocalStiffness(const TissueState& state, int32_t node)
       continue;
     }
     Matrix3d r = Matrix3d::Identity();
-    if (kind_ == FemKind::kCorotational) {
-      r = PolarRotation(Matrix3d::Identity() +
-                        elements_.DisplacementGradient(state.positions, rest_, e));
+    if (kind_ == FemKind::kCorotational) {  // from the element's rotation in the last step
+      const double* last = static_cast<const FemState&>(state).quaternions.data() + 4 * e;
+      double q[4] = {last[0], last[1], last[2], last[3]};
+      r = PolarRotationFrom(
+          Matrix3d::Identity() + elements_.DisplacementGradient(state.positions, rest_, e), q);
     }
     k += r * RestBlock(e, a, a) * r.transpose();
   }
@@ -460,10 +708,16 @@ void FemModel::Advance(const StepInputs& inputs, TissueState* base) const {
   const ViscousStep* const visc = prony_.empty() ? nullptr : &viscous;
   if (visc != nullptr) viscous = BeginViscousStep(*state, dt, state->offset.data());
   // f(x) and the rotations, then A = (1 + dt α) M + (dt² + dt β) K.
-  ElasticForces(state->positions, state->forces.data(), state->rotations.data(), visc);
   const double k_scale = dt * dt + dt * beta;
   const double m_scale = 1.0 + dt * alpha;
-  AssembleWarped(state->positions, state->rotations.data(), k_scale, m_scale, &state->matrix, visc);
+  if (kind_ == FemKind::kHyperelastic) {
+    ElasticForces(state->positions, state->forces.data(), state->rotations.data(), visc);
+    AssembleWarped(state->positions, state->rotations.data(), k_scale, m_scale, &state->matrix,
+                   visc);
+  } else {  // one pass over the elements for both
+    ForcesAndWarpedMatrix(state->positions, state->forces.data(), state->rotations.data(),
+                          state->quaternions.data(), visc, k_scale, m_scale, &state->matrix);
+  }
   // K v = (A v - m_scale M v) / k_scale (before the grasps join A: they have no damping).
   double* const kv = state->temp.data();
   const double* const v = state->velocities.data();
@@ -541,17 +795,46 @@ void FemModel::Advance(const StepInputs& inputs, TissueState* base) const {
   if (visc != nullptr) EndViscousStep(dt, state);  // a rejected step restores h (RestoreGood)
 }
 
-StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state) const {
-  return SolveStaticImpl(loads, state, nullptr);
+struct StaticWorkspace::Impl {
+  const FemModel* owner = nullptr;  // the model the pattern below belongs to
+  std::vector<int32_t> dof;         // 3 × num_nodes: free DOF number, or -1 where held
+  std::vector<int32_t> lower_dof;   // the numbering k_free (and the analysis) is for
+  BlockSparseMatrix tangent;        // the model's pattern
+  LowerCsc k_free;                  // the tangent on the free DOFs, scalar lower triangle
+  std::vector<int32_t> k_source;    // k_free.values[k] = tangent value k_source[k]
+  SparseCholesky cholesky;
+  bool analysed = false;       // cholesky holds the analysis of k_free's pattern
+  bool factorised = false;     // and a factor of a tangent on these free DOFs
+  std::vector<double> offset;  // a QLV step's offset stress, 9 × num_tets
+  // The last converged call's result and its change from where it started (time-history mode,
+  // StaticLoads::reuse_factorisation), 3 × num_nodes.
+  bool has_history = false;
+  mesh::Points last_solution, last_change;
+};
+
+StaticWorkspace::StaticWorkspace() : impl_(std::make_unique<Impl>()) {}
+StaticWorkspace::~StaticWorkspace() = default;
+
+StaticResult FemModel::SolveStatic(const StaticLoads& loads, TissueState* state,
+                                   StaticWorkspace* workspace) const {
+  return SolveStaticImpl(loads, state, nullptr, workspace, false);
 }
 
-StaticResult FemModel::SolveQuasiStatic(const StaticLoads& loads, double dt,
-                                        TissueState* state) const {
+StaticResult FemModel::NewtonIteration(const StaticLoads& loads, TissueState* state,
+                                       StaticWorkspace* workspace) const {
+  return SolveStaticImpl(loads, state, nullptr, workspace, true);
+}
+
+StaticResult FemModel::SolveQuasiStatic(const StaticLoads& loads, double dt, TissueState* state,
+                                        StaticWorkspace* workspace) const {
   if (!(dt > 0.0) || !std::isfinite(dt)) Refuse("quasi-static dt [s] must be > 0");
-  if (prony_.empty()) return SolveStaticImpl(loads, state, nullptr);
-  std::vector<double> offset(9 * static_cast<size_t>(num_tets()));
+  if (prony_.empty()) return SolveStaticImpl(loads, state, nullptr, workspace, false);
+  StaticWorkspace local;
+  if (workspace == nullptr) workspace = &local;
+  std::vector<double>& offset = workspace->impl_->offset;
+  offset.resize(9 * static_cast<size_t>(num_tets()));
   const ViscousStep viscous = BeginViscousStep(*state, dt, offset.data());
-  StaticResult result = SolveStaticImpl(loads, state, &viscous);
+  StaticResult result = SolveStaticImpl(loads, state, &viscous, workspace, false);
   if (result.converged) {
     EndViscousStep(dt, state);
     state->time += dt;
@@ -559,9 +842,39 @@ StaticResult FemModel::SolveQuasiStatic(const StaticLoads& loads, double dt,
   return result;
 }
 
+void FemModel::AssembleTangent(const mesh::Points& x, BlockSparseMatrix* matrix) const {
+  if (matrix->num_blocks() != pattern_.num_blocks()) *matrix = pattern_;
+  AssembleExact(x, matrix, nullptr);
+}
+
+void FemModel::AssembleExact(const mesh::Points& x, BlockSparseMatrix* matrix,
+                             const ViscousStep* viscous) const {
+  matrix->SetZero();
+  for (int32_t e = 0; e < num_tets(); ++e) {
+    const Eigen::Matrix<double, 12, 12> ke = ElementTangent(x, e, true, viscous);
+    for (int a = 0; a < 4; ++a) {
+      for (int b = 0; b < 4; ++b) {
+        matrix->block(matrix->element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
+      }
+    }
+  }
+}
+
 StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* state,
-                                       const ViscousStep* viscous) const {
+                                       const ViscousStep* viscous, StaticWorkspace* workspace,
+                                       bool single_iteration) const {
   const auto n = static_cast<size_t>(num_nodes());
+  StaticWorkspace local;
+  if (workspace == nullptr) workspace = &local;
+  StaticWorkspace::Impl& ws = *workspace->impl_;
+  if (ws.owner != this) {  // a fresh workspace, or one another model used: start over
+    ws.owner = this;
+    ws.tangent = pattern_;
+    ws.lower_dof.clear();
+    ws.analysed = false;
+    ws.factorised = false;
+    ws.has_history = false;
+  }
   if (loads.external_forces != nullptr &&
       (loads.external_forces->cols() != num_nodes() || !loads.external_forces->allFinite())) {
     Refuse("static external forces must be 3 x num_nodes and finite");
@@ -571,7 +884,11 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
       !(loads.max_newton_iterations > 0)) {
     Refuse("load_steps, tolerance, step_tolerance and max_newton_iterations must be > 0");
   }
-  std::vector<int32_t> dof(3 * n, 0);
+  if (loads.reuse_factorisation && !(loads.reuse_ratio > 0.0 && loads.reuse_ratio < 1.0)) {
+    Refuse("reuse_ratio must lie in (0, 1)");
+  }
+  std::vector<int32_t>& dof = ws.dof;
+  dof.assign(3 * n, 0);
   for (const int32_t node : loads.fixed_nodes) {
     if (node < 0 || node >= num_nodes())
       Refuse("fixed node " + std::to_string(node) + " out of range");
@@ -602,6 +919,14 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
   for (int32_t& d : dof) {
     if (d == 0) d = num_dofs++;
   }
+  if (dof != ws.lower_dof) {  // new held DOFs: a new reduced pattern and a new analysis
+    ws.k_free = ws.tangent.ScalarLowerPattern(dof, num_dofs, &ws.k_source);
+    ws.lower_dof = dof;
+    ws.analysed = false;
+    ws.factorised = false;
+  }
+  BlockSparseMatrix& tangent = ws.tangent;
+  SparseCholesky& cholesky = ws.cholesky;
   // Total load at full scale: external forces and gravity.
   mesh::Points load = mesh::Points::Zero(3, num_nodes());
   if (loads.external_forces != nullptr) load = *loads.external_forces;
@@ -611,9 +936,6 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
   const mesh::Points start = state->positions;
   StaticResult result;
   mesh::Points forces(3, num_nodes());
-  BlockSparseMatrix tangent = pattern_;
-  SparseCholesky cholesky;
-  bool analysed = false;
   // Free-DOF norm of r = f(x) + scale · load.
   const auto residual = [&](double scale, Eigen::VectorXd* r) {
     ElasticForces(state->positions, forces.data(), nullptr, viscous);
@@ -642,30 +964,39 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
     if (kind_ == FemKind::kLinear && linear_factorised) return true;
     for (int attempt = 0; attempt < 3; ++attempt) {
       if (attempt == 1 && kind_ != FemKind::kCorotational) continue;
-      tangent.SetZero();
-      for (int32_t e = 0; e < num_tets(); ++e) {
-        const Eigen::Matrix<double, 12, 12> ke =
-            ElementTangent(attempt == 2 ? rest_ : state->positions, e, attempt != 1, viscous);
-        for (int a = 0; a < 4; ++a) {
-          for (int b = 0; b < 4; ++b) {
-            tangent.block(tangent.element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
+      if (attempt == 1) {  // the rotated (warped) tangent, positive semi-definite
+        tangent.SetZero();
+        for (int32_t e = 0; e < num_tets(); ++e) {
+          const Eigen::Matrix<double, 12, 12> ke =
+              ElementTangent(state->positions, e, false, viscous);
+          for (int a = 0; a < 4; ++a) {
+            for (int b = 0; b < 4; ++b) {
+              tangent.block(tangent.element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
+            }
           }
         }
+      } else {
+        AssembleExact(attempt == 2 ? rest_ : state->positions, &tangent, viscous);
       }
-      const LowerCsc k_free = tangent.ScalarLower(dof, num_dofs);
-      if (!analysed) {
-        cholesky.Analyse(k_free);
-        analysed = true;
+      tangent.FillScalarLower(ws.k_source, &ws.k_free);
+      if (!ws.analysed) {
+        cholesky.Analyse(ws.k_free);
+        ws.analysed = true;
       }
-      if (cholesky.Factorise(k_free)) {
+      ++result.factorisations;
+      if (cholesky.Factorise(ws.k_free)) {
         linear_factorised = true;
+        ws.factorised = true;
         return true;
       }
     }
+    ws.factorised = false;
     return false;
   };
-  for (int step = 1; step <= loads.load_steps; ++step) {
-    const double scale = static_cast<double>(step) / loads.load_steps;
+  // A single iteration (NewtonIteration) is at full load, with the held DOFs put in place.
+  const int load_steps = single_iteration ? 1 : loads.load_steps;
+  for (int step = 1; step <= load_steps; ++step) {
+    const double scale = static_cast<double>(step) / load_steps;
     // This step's Dirichlet values (they move in increments too), as an increment d.
     mesh::Points target = state->positions;
     for (const int32_t node : loads.fixed_nodes) target.col(node) = rest_.col(node);
@@ -684,7 +1015,8 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
     // K_ff Δu_f = r_f - K_fc d_c (moving only the held nodes would crush the elements next to
     // them, and a hyperelastic tangent there may not be positive definite).
     Eigen::VectorXd r;
-    if (num_dofs > 0 && increment.cwiseAbs().maxCoeff() > 0.0 && factorise_tangent()) {
+    if (!single_iteration && num_dofs > 0 && increment.cwiseAbs().maxCoeff() > 0.0 &&
+        factorise_tangent()) {
       residual(scale, &r);
       mesh::Points moved(3, num_nodes());
       tangent.Multiply(increment.data(), moved.data(), nullptr);
@@ -704,6 +1036,20 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
     } else {
       state->positions = target;
     }
+    // Time-history mode: a state that is the one the last call left starts from its positions
+    // extrapolated along that call's change (the next step of a creep or relaxation is close to
+    // it), cutting the first residual and so the iterations; not where that is not finite.
+    if (loads.reuse_factorisation && loads.load_steps == 1 && !single_iteration && ws.has_history &&
+        ws.last_solution.cols() == num_nodes() && state->positions == ws.last_solution) {
+      const mesh::Points here = state->positions;
+      for (size_t k = 0; k < 3 * n; ++k) {
+        if (dof[k] >= 0) state->positions.data()[k] += ws.last_change.data()[k];
+      }
+      if (!std::isfinite(residual(scale, &r)) || !r.allFinite() ||
+          !std::isfinite(potential(scale))) {
+        state->positions = here;
+      }
+    }
     result.residual_history.clear();
     const double load_norm = residual(scale, &r);
     // A scale for "zero" when nothing is loaded (pure Dirichlet): the forces at the start.
@@ -717,14 +1063,19 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
     }
     double r_norm = r.norm();
     bool small_step = false;
-    for (int it = 0; num_dofs > 0 && it < loads.max_newton_iterations &&
-                     r_norm > loads.tolerance * reference && !small_step;
+    const int max_iterations = single_iteration ? 1 : loads.max_newton_iterations;
+    bool refactorise = false;
+    for (int it = 0; num_dofs > 0 && it < max_iterations &&
+                     (single_iteration || r_norm > loads.tolerance * reference) && !small_step;
          ++it) {
-      if (!factorise_tangent()) break;
+      const bool reuse = loads.reuse_factorisation && ws.factorised && !refactorise;
+      if (!reuse && !factorise_tangent()) break;
       Eigen::VectorXd du(num_dofs);
       cholesky.Solve(r.data(), du.data());
-      // Backtracking on the potential (Armijo), accepting a full step that lowers the residual.
-      const double pi0 = potential(scale);
+      // Backtracking on the potential (Armijo), accepting a full step that lowers the residual
+      // (tested first: the potential is evaluated only when needed).
+      double pi0 = 0.0;
+      bool have_pi0 = false;
       const double slope = -r.dot(du);  // dΠ/dt along du at t = 0 (r = -∇Π)
       const mesh::Points before = state->positions;
       double t = 1.0;
@@ -737,9 +1088,19 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
         }
         residual(scale, &r_new);
         r_new_norm = r_new.norm();
-        if (potential(scale) <= pi0 + 1e-4 * t * slope || r_new_norm < r_norm) break;
+        if (r_new_norm < r_norm) break;
+        if (!have_pi0) {
+          const mesh::Points trial = state->positions;
+          state->positions = before;
+          pi0 = potential(scale);
+          have_pi0 = true;
+          state->positions = trial;
+        }
+        if (potential(scale) <= pi0 + 1e-4 * t * slope) break;
         t *= 0.5;
       }
+      // A step of the old factor that no longer shrinks the residual enough: refactorise.
+      refactorise = r_new_norm > loads.reuse_ratio * r_norm;
       r = r_new;
       r_norm = r_new_norm;
       double u_norm2 = 0.0;
@@ -755,8 +1116,18 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
     result.converged = r_norm <= loads.tolerance * reference || small_step || num_dofs == 0;
     if (!result.converged) break;
   }
-  // Reactions: what the supports must supply, -(f(x) + load) on the held DOFs.
-  ElasticForces(state->positions, forces.data(), nullptr, viscous);
+  if (single_iteration) {
+    result.converged = result.final_residual <= loads.tolerance;
+    state->velocities.setZero();
+    return result;
+  }
+  ws.has_history = result.converged;
+  if (result.converged) {
+    ws.last_change = state->positions - start;
+    ws.last_solution = state->positions;
+  }
+  // Reactions: what the supports must supply, -(f(x) + load) on the held DOFs. `forces` is f at
+  // the final positions already: every path above ends on a residual evaluation there.
   result.reactions = mesh::Points::Zero(3, num_nodes());
   for (size_t k = 0; k < 3 * n; ++k) {
     if (dof[k] < 0) result.reactions.data()[k] = -(forces.data()[k] + load.data()[k]);

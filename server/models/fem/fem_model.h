@@ -17,10 +17,14 @@
 //   (M + dt C + dt² K) Δv = dt (f(x) - C v + f_ext - dt K v),  v += Δv,  x += dt v,
 // with K the element stiffnesses rotated into the current frame, R K_e Rᵀ ("warped stiffness",
 // symmetric positive semi-definite, so CG always applies; for the linear model R = I), solved
-// by block-Jacobi preconditioned conjugate gradients warm-started from the last step's Δv.
+// by block-Jacobi preconditioned conjugate gradients warm-started from the last step's Δv. The
+// step's rotations come from PolarRotationFrom warm-started at the last step's (eight elements at
+// a time with AVX-512), forces and matrix in one pass over the elements, the matrix kept as its
+// upper blocks (half the memory each product streams).
 // Statics (SolveStatic): Newton's method on the total potential with the exact tangent (for the
 // corotational model including the derivative of R), a backtracking line search, load stepping,
-// and CHOLMOD's supernodal Cholesky factorisation for each Newton system.
+// and CHOLMOD's supernodal Cholesky factorisation for each Newton system (or, for a time history
+// with StaticLoads::reuse_factorisation, an earlier system's: modified Newton).
 #pragma once
 
 #include <Eigen/Core>
@@ -106,16 +110,44 @@ struct StaticLoads {
   double tolerance = 1e-8;
   double step_tolerance = 1e-9;
   int max_newton_iterations = 50;
+  // Modified Newton, for a sequence of nearby solves (a quasi-static time history): keep using
+  // the last factorised tangent — from an earlier call with the same workspace and held DOFs
+  // too — while its steps shrink the residual by reuse_ratio (in (0, 1)) or better, and
+  // refactorise after a step that does not. An iteration then costs a solve with the old factor
+  // instead of an assembly and a factorisation (CHOLMOD's is ~100× a solve on liver4055);
+  // convergence is linear instead of quadratic, to the same tolerance. A state that is the one
+  // the last call with the workspace left also starts from its positions extrapolated along
+  // that call's change (load_steps = 1).
+  bool reuse_factorisation = false;
+  double reuse_ratio = 0.5;
 };
 
 struct StaticResult {
   bool converged = false;
   int newton_iterations = 0;    // summed over load steps
+  int factorisations = 0;       // tangents factorised (fewer than iterations with reuse)
   double final_residual = 0.0;  // |r| / |load| at the end (free DOFs)
   // Newton's relative residual after each iteration of the last load step (to see quadratic
   // convergence).
   std::vector<double> residual_history;
   mesh::Points reactions;  // [N], 3 × num_nodes: force the supports exert (0 on free nodes)
+};
+
+// What repeated static solves of one model keep between calls (SolveStatic, SolveQuasiStatic,
+// NewtonIteration): the free-DOF numbering, the tangent and its scalar lower triangle with the map
+// between them, CHOLMOD's symbolic analysis (ordering and supernodes, redone only when the held
+// DOFs change) and scratch vectors. Opaque; one per model and thread.
+class StaticWorkspace {
+ public:
+  StaticWorkspace();
+  ~StaticWorkspace();
+  StaticWorkspace(const StaticWorkspace&) = delete;
+  StaticWorkspace& operator=(const StaticWorkspace&) = delete;
+
+ private:
+  friend class FemModel;
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
 };
 
 class FemModel final : public TissueModel {
@@ -138,12 +170,28 @@ class FemModel final : public TissueModel {
   // equilibrium positions into state->positions and zeroes the velocities. Allocates (a
   // factorisation per Newton iteration): not for the real-time path. Throws
   // std::invalid_argument on bad loads (sizes, indices, NaN).
-  StaticResult SolveStatic(const StaticLoads& loads, TissueState* state) const;
+  // With a workspace, what does not change between calls (the symbolic analysis of the
+  // tangent's pattern, buffers) is reused: a sequence of solves (a time history) runs faster.
+  StaticResult SolveStatic(const StaticLoads& loads, TissueState* state,
+                           StaticWorkspace* workspace = nullptr) const;
   // Quasi-static viscoelastic evolution (no inertia): equilibrium at t + dt under `loads` (their
   // full values at t + dt; load_steps ramps within the step) with the state's QLV internal
   // variables, which are then advanced to t + dt. A creep or relaxation test is a sequence of
   // these. Allocates.
-  StaticResult SolveQuasiStatic(const StaticLoads& loads, double dt, TissueState* state) const;
+  StaticResult SolveQuasiStatic(const StaticLoads& loads, double dt, TissueState* state,
+                                StaticWorkspace* workspace = nullptr) const;
+  // One iteration of SolveStatic's Newton loop at full load (for benchmarks and tests): the held
+  // DOFs are put at their values, then the residual, the tangent (assembled and factorised),
+  // the Newton correction and the line search, exactly as SolveStatic does them. Returns the
+  // relative residual after the iteration in final_residual (converged when it is below
+  // loads.tolerance) and newton_iterations = 1; no reactions. Elastic (no QLV context).
+  StaticResult NewtonIteration(const StaticLoads& loads, TissueState* state,
+                               StaticWorkspace* workspace) const;
+  // The exact tangent -∂f/∂x at x, Σ_e ElementTangent(x, e, true) (the matrix SolveStatic
+  // factorises, before the held DOFs are taken out), into `matrix` (the model's pattern,
+  // overwritten). Allocates nothing when `matrix` has the model's pattern already.
+  void AssembleTangent(const mesh::Points& x, BlockSparseMatrix* matrix) const;
+  const BlockSparseMatrix& pattern() const { return pattern_; }
 
   // The element tangent -∂f_e/∂x_e (12 × 12, corners a = 0..3 × xyz) of element e at positions
   // x: exact (with the derivative of R) or warped (R K_e Rᵀ; the hyperelastic model has only
@@ -166,8 +214,10 @@ class FemModel final : public TissueModel {
 
  private:
   FemModel() = default;
-  // Element e's rotation at x (identity for the linear model), its strain ε (symmetric) and
-  // the first Piola–Kirchhoff stress P [Pa].
+  // Element e's rotation at x (identity for the linear and hyperelastic models), its strain ε
+  // (symmetric; zero for the hyperelastic model, whose callers do not need it) and the first
+  // Piola–Kirchhoff stress P [Pa]. The corotational rotation is PolarRotationFrom's from the
+  // identity.
   void ElementStress(const mesh::Points& x, int32_t e, Eigen::Matrix3d* rotation,
                      Eigen::Matrix3d* strain, Eigen::Matrix3d* stress,
                      const ViscousStep* viscous = nullptr) const;
@@ -185,20 +235,32 @@ class FemModel final : public TissueModel {
   ViscousStep BeginViscousStep(const TissueState& state, double dt, double* offset) const;
   void EndViscousStep(double dt, TissueState* state) const;
   StaticResult SolveStaticImpl(const StaticLoads& loads, TissueState* state,
-                               const ViscousStep* viscous) const;
+                               const ViscousStep* viscous, StaticWorkspace* workspace,
+                               bool single_iteration) const;
   // Assembles Σ_e R_e K_e R_eᵀ (rotations 9 × num_tets, or identity for the linear model; the
   // exact tangent at x for the hyperelastic one) scaled by `scale` into `matrix` (zeroed
   // first), then adds mass_scale · M on the diagonal.
   void AssembleWarped(const mesh::Points& x, const double* rotations, double scale,
                       double mass_scale, BlockSparseMatrix* matrix,
                       const ViscousStep* viscous = nullptr) const;
+  // Σ_e ElementTangent(x, e, true, viscous) into `matrix` (zeroed first).
+  void AssembleExact(const mesh::Points& x, BlockSparseMatrix* matrix,
+                     const ViscousStep* viscous) const;
+  // Linear and corotational Step: ElasticForces and AssembleWarped fused into one pass over the
+  // elements (equal up to rounding), the rotations decomposed first in batches (PolarRotations),
+  // each warm-started from `quaternions` (4 × num_tets: the last step's, updated).
+  void ForcesAndWarpedMatrix(const mesh::Points& x, double* forces, double* rotations,
+                             double* quaternions, const ViscousStep* viscous, double k_scale,
+                             double m_scale, BlockSparseMatrix* matrix) const;
   // The undeformed element stiffness block K_ab = V (λ ∇N_a ∇N_bᵀ + μ ∇N_b ∇N_aᵀ + μ ∇N_a·∇N_b I).
   Eigen::Matrix3d RestBlock(int32_t e, int a, int b) const;
 
   mesh::Points rest_;  // [m], 3 × num_nodes
   TetElements elements_;
   BlockSparseMatrix pattern_;  // the stiffness pattern (values unused)
-  std::vector<double> mass_;   // [kg]
+  // Its upper blocks only: a linear or corotational Step's matrix (symmetric: warped K, M).
+  BlockSparseMatrix upper_pattern_;
+  std::vector<double> mass_;  // [kg]
   FemKind kind_ = FemKind::kCorotational;
   HyperelasticMaterial material_;
   std::vector<PronyTerm> prony_;

@@ -50,4 +50,17 @@ Eigen::Matrix3d FirstPiolaStress(const HyperelasticMaterial& m, const Eigen::Mat
 Eigen::Matrix3d StressDifferential(const HyperelasticMaterial& m, const Eigen::Matrix3d& f,
                                    const Eigen::Matrix3d& df);
 
+// What dP at one F needs that does not depend on dF, computed once for the twelve dF of an
+// element tangent (F⁻ᵀ, the invariants, W', W'', U', U'').
+struct StressPoint {
+  HyperelasticLaw law = HyperelasticLaw::kReducedPolynomial;
+  Eigen::Matrix3d f, f_inv_t, a;  // a = 2F - (2/3) I1 F⁻ᵀ (∂Ī1/∂F = g a)
+  Eigen::Matrix3d s;              // St Venant–Kirchhoff: the second Piola–Kirchhoff stress
+  double j = 1.0, i1 = 3.0, g = 1.0, w1 = 0.0, w2 = 0.0, u1 = 0.0, u2 = 0.0;
+  double lambda = 0.0, mu = 0.0;
+};
+StressPoint PrepareStressDifferential(const HyperelasticMaterial& m, const Eigen::Matrix3d& f);
+// StressDifferential(m, f, df) with the point prepared (equal up to rounding).
+Eigen::Matrix3d StressDifferential(const StressPoint& point, const Eigen::Matrix3d& df);
+
 }  // namespace somasim::models::fem

@@ -47,4 +47,23 @@ TetElements BuildTetElements(const mesh::TetMesh& mesh, const char* model);
 // also for an inverted element (det F < 0), from the singular value decomposition.
 Eigen::Matrix3d PolarRotation(const Eigen::Matrix3d& f);
 
+// The same rotation without a singular value decomposition: R maximises tr(Rᵀ F) over proper
+// rotations (for det F < 0 too, where it is U diag(1, 1, -1) Vᵀ, PolarRotation's answer), found
+// by Newton's method on that maximum from the unit quaternion q = (w, x, y, z) of a nearby
+// rotation (the element's rotation in the last step; (1, 0, 0, 0) when none is known), which is
+// updated to R's. With R = R_k cay(ω), the gradient of tr(Rᵀ F) is the axial vector g of
+// A - Aᵀ, A = R_kᵀ F, and the Hessian is -(tr(S) I - S), S = sym(A): each step solves
+// (tr(S) I - S) ω = g, quadratically convergent, so a warm start takes 2–3 steps of ~150
+// flops instead of a Jacobi SVD's ~2000. A Hessian that is not negative definite means a
+// saddle or a far start (the maximum is the only stationary point where it is): then, or
+// without convergence in 8 steps, PolarRotation decides.
+Eigen::Matrix3d PolarRotationFrom(const Eigen::Matrix3d& f, double* q);
+
+// PolarRotationFrom for `count` matrices: f and r 9 × count (3 × 3 column-major each), q
+// 4 × count (in: the starts; out: the rotations). With AVX-512, eight at a time, one per
+// vector lane (the serial Newton chain of one matrix is latency-bound; eight interleave), with
+// a lane that does not converge handed to PolarRotationFrom; equal to it up to rounding.
+// `force_scalar` (tests) takes the portable path. r may be f (in place). Allocates nothing.
+void PolarRotations(const double* f, double* q, double* r, size_t count, bool force_scalar = false);
+
 }  // namespace somasim::models::fem

@@ -19,9 +19,10 @@ namespace {
 
 // A random symmetric positive definite matrix on a box's node graph: Σ_e G_eᵀ G_e over
 // elements (12 × 12 random G_e) plus `shift` I, also returned dense.
-BlockSparseMatrix RandomSpd(const mesh::TetMesh& mesh, double shift, Eigen::MatrixXd* dense) {
-  BlockSparseMatrix a =
-      BlockSparseMatrix::FromTets(mesh.tetrahedra, static_cast<int32_t>(mesh.vertices.cols()));
+BlockSparseMatrix RandomSpd(const mesh::TetMesh& mesh, double shift, Eigen::MatrixXd* dense,
+                            bool upper = false) {
+  BlockSparseMatrix a = BlockSparseMatrix::FromTets(
+      mesh.tetrahedra, static_cast<int32_t>(mesh.vertices.cols()), upper);
   const Eigen::Index n = 3 * mesh.vertices.cols();
   *dense = shift * Eigen::MatrixXd::Identity(n, n);
   std::mt19937 rng(11);
@@ -33,7 +34,9 @@ BlockSparseMatrix RandomSpd(const mesh::TetMesh& mesh, double shift, Eigen::Matr
     for (int p = 0; p < 4; ++p) {
       for (int q = 0; q < 4; ++q) {
         const auto ep = static_cast<int32_t>(e);
-        a.block(a.element_block(ep, p, q)) += ke.block<3, 3>(3 * p, 3 * q);
+        if (a.element_block(ep, p, q) >= 0) {  // upper storage leaves the lower blocks out
+          a.block(a.element_block(ep, p, q)) += ke.block<3, 3>(3 * p, 3 * q);
+        }
         dense->block<3, 3>(3 * mesh.tetrahedra(p, e), 3 * mesh.tetrahedra(q, e)) +=
             ke.block<3, 3>(3 * p, 3 * q);
       }
@@ -61,6 +64,62 @@ TEST(BlockSparseMatrix, ProductMatchesTheDenseMatrix) {
   Eigen::VectorXd y(dense.rows());
   a.Multiply(x.data(), y.data(), nullptr);
   EXPECT_LT((y - dense * x).norm(), 1e-12 * (dense * x).norm());
+}
+
+// The scalar and AVX-512 products, full and upper storage, with and without held nodes, all
+// equal the dense product (held rows and columns replaced by the identity).
+TEST(BlockSparseMatrix, EveryProductPathMatchesTheDenseMatrix) {
+  const mesh::TetMesh box =
+      mesh_gen::BoxGridTets(4, 3, 3, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones());
+  Eigen::MatrixXd dense, dense_upper;
+  BlockSparseMatrix full = RandomSpd(box, 0.5, &dense);
+  BlockSparseMatrix upper = RandomSpd(box, 0.5, &dense_upper, true);
+  ASSERT_TRUE(upper.upper());
+  EXPECT_LT(2 * upper.num_blocks(), full.num_blocks() + full.num_nodes() + 1);
+  EXPECT_EQ(dense, dense_upper);
+  const int32_t n = full.num_nodes();
+  const std::vector<uint8_t> held = HeldNodes(n, {0, 7, 20, n - 1});
+  Eigen::MatrixXd masked = dense;  // held rows and columns replaced by the identity
+  for (int32_t i = 0; i < n; ++i) {
+    if (held[static_cast<size_t>(i)] == 0) continue;
+    masked.middleRows(3 * i, 3).setZero();
+    masked.middleCols(3 * i, 3).setZero();
+    masked.block<3, 3>(3 * i, 3 * i).setIdentity();
+  }
+  const Eigen::VectorXd x = Eigen::VectorXd::LinSpaced(dense.rows(), -1.0, 2.0);
+  for (BlockSparseMatrix* a : {&full, &upper}) {
+    for (const bool scalar : {false, true}) {
+      a->set_force_scalar(scalar);
+      Eigen::VectorXd y = Eigen::VectorXd::Constant(dense.rows(), 7.0);  // overwritten
+      a->Multiply(x.data(), y.data(), nullptr);
+      EXPECT_LT((y - dense * x).norm(), 1e-13 * (dense * x).norm()) << a->upper() << scalar;
+      a->Multiply(x.data(), y.data(), held.data());
+      EXPECT_LT((y - masked * x).norm(), 1e-13 * (masked * x).norm()) << a->upper() << scalar;
+    }
+  }
+}
+
+TEST(BlockSparseMatrix, ScalarLowerInTwoPartsEqualsTheSortedOne) {
+  const mesh::TetMesh box =
+      mesh_gen::BoxGridTets(3, 3, 4, Eigen::Vector3d::Zero(), Eigen::Vector3d::Ones());
+  Eigen::MatrixXd dense;
+  BlockSparseMatrix a = RandomSpd(box, 0.5, &dense);
+  std::vector<int32_t> dof(3 * static_cast<size_t>(a.num_nodes()), 0);
+  dof[3] = dof[4] = dof[5] = dof[10] = -1;  // node 1 held, and the y of node 3
+  int32_t num_dofs = 0;
+  for (int32_t& d : dof) {
+    if (d == 0) d = num_dofs++;
+  }
+  const LowerCsc sorted = a.ScalarLower(dof, num_dofs);
+  std::vector<int32_t> source;
+  LowerCsc pattern = a.ScalarLowerPattern(dof, num_dofs, &source);
+  a.block(0) *= 2.0;  // new values, same pattern: Fill must see them
+  a.FillScalarLower(source, &pattern);
+  EXPECT_EQ(pattern.col_start, sorted.col_start);
+  EXPECT_EQ(pattern.rows, sorted.rows);
+  const LowerCsc again = a.ScalarLower(dof, num_dofs);
+  EXPECT_EQ(pattern.values, again.values);
+  EXPECT_NE(pattern.values, sorted.values);
 }
 
 TEST(BlockSparseMatrix, ConjugateGradientsWithDirichletNodesMatchesCholmod) {

@@ -61,6 +61,25 @@ TEST(Hyperelastic, StressDifferentialIsTheStressDerivative) {
 }
 
 // At F = I every law linearises to Hooke's law with λ0 = κ0 - 2μ0/3 and μ0.
+// The prepared form (what an element tangent uses for its twelve dF) equals the direct one, and
+// a material with all three D terms too.
+TEST(Hyperelastic, PreparedStressDifferentialEqualsTheDirectOne) {
+  std::vector<HyperelasticMaterial> materials = Materials();
+  HyperelasticMaterial three = LiverNava2008();
+  three.d[1] = 2.0 * three.d[0];
+  three.d[2] = 5.0 * three.d[0];
+  materials.push_back(three);
+  for (const HyperelasticMaterial& m : materials) {
+    for (unsigned seed = 1; seed <= 3; ++seed) {
+      const Matrix3d f = SomeF(seed);
+      const StressPoint point = PrepareStressDifferential(m, f);
+      const Matrix3d df = SomeF(seed + 10) - Matrix3d::Identity();
+      const Matrix3d direct = StressDifferential(m, f, df);
+      EXPECT_LT((StressDifferential(point, df) - direct).norm(), 1e-12 * direct.norm());
+    }
+  }
+}
+
 TEST(Hyperelastic, SmallStrainIsHookesLawWithTheInitialModuli) {
   for (const HyperelasticMaterial& m : Materials()) {
     const double mu = m.InitialShearModulus();
