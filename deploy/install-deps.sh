@@ -18,6 +18,8 @@ PACKAGES=(
   freeglut3-dev libgl-dev libglu1-mesa-dev libpng-dev xvfb xauth
   # tests and benchmarks
   libgtest-dev libgmock-dev libbenchmark-dev libbullet-dev
+  # an independent finite-element code the FEM is checked against (run as a program)
+  calculix-ccx
   # application support
   libcli11-dev libspdlog-dev libfmt-dev nlohmann-json3-dev
   # external tetrahedraliser (AGPL: run as a program, never linked)

@@ -160,7 +160,9 @@ void CheckMaterial(const Where& m, const Material& material, const Model& model)
   m.NonNegative("rayleigh_stiffness", material.rayleigh_stiffness());
   const bool hyperelastic = model.kind_case() == Model::kFemHyperelastic;
   if (material.law_case() != Material::LAW_NOT_SET && !hyperelastic) {
-    m.FailHere("a named law (liver_nava2008, neo_hookean, stvk) needs the fem_hyperelastic model");
+    m.FailHere(
+        "a named law (liver_nava2008, neo_hookean, stvk, reduced_polynomial) needs the "
+        "fem_hyperelastic model");
   }
   if (hyperelastic) {
     switch (material.law_case()) {
@@ -182,8 +184,28 @@ void CheckMaterial(const Where& m, const Material& material, const Model& model)
         m.Positive("youngs_modulus", material.youngs_modulus());
         CheckPoisson(m, material.poisson_ratio());
         break;
+      case Material::kReducedPolynomial: {
+        const ReducedPolynomial& rp = material.reduced_polynomial();
+        const Where r = m.Child("reduced_polynomial", rp);
+        if (rp.c_size() < 1 || rp.c_size() > 5) r.FailHere("needs 1 to 5 coefficients c");
+        if (rp.d_size() < 1 || rp.d_size() > 3) r.FailHere("needs 1 to 3 coefficients d");
+        for (int k = 0; k < rp.c_size(); ++k) {
+          if (!std::isfinite(rp.c(k)) || (k == 0 && !(rp.c(k) > 0.0))) {
+            r.Fail("c", k == 0 ? "C10 must be a finite value > 0" : "must be finite", k);
+          }
+        }
+        for (int k = 0; k < rp.d_size(); ++k) {
+          if (!std::isfinite(rp.d(k)) || (k == 0 ? !(rp.d(k) > 0.0) : !(rp.d(k) >= 0.0))) {
+            r.Fail("d", k == 0 ? "D1 must be a finite value > 0" : "must be a finite value >= 0",
+                   k);
+          }
+        }
+        break;
+      }
       case Material::LAW_NOT_SET:
-        m.FailHere("fem_hyperelastic needs a law: liver_nava2008, neo_hookean or stvk");
+        m.FailHere(
+            "fem_hyperelastic needs a law: liver_nava2008, neo_hookean, stvk or "
+            "reduced_polynomial");
     }
   } else {
     m.Positive("youngs_modulus", material.youngs_modulus());

@@ -74,6 +74,15 @@ models::fem::FemParameters FemParametersOf(const scene::Organ& organ) {
     case scene::Material::kStvk:
       p.hyperelastic = fem::StVenantKirchhoff(m.youngs_modulus(), m.poisson_ratio());
       break;
+    case scene::Material::kReducedPolynomial: {  // sizes checked by the scene loader
+      const scene::ReducedPolynomial& rp = m.reduced_polynomial();
+      p.hyperelastic = fem::HyperelasticMaterial{};
+      for (int k = 0; k < rp.c_size() && k < 5; ++k)
+        p.hyperelastic.c[static_cast<size_t>(k)] = rp.c(k);
+      for (int k = 0; k < rp.d_size() && k < 3; ++k)
+        p.hyperelastic.d[static_cast<size_t>(k)] = rp.d(k);
+      break;
+    }
     case scene::Material::LAW_NOT_SET:
       break;
   }

@@ -9,14 +9,9 @@
 
 namespace somasim::testing {
 
-ToolRun RunProgram(const std::string& program, const std::string& args) {
-  const char* env = std::getenv("SOMASIM_BIN_DIR");
-  const std::string bin =
-      env != nullptr ? std::string(env)
-                     : std::filesystem::read_symlink("/proc/self/exe").parent_path().string();
-  const std::string command = bin + "/" + program + " " + args + " 2>&1";
+ToolRun RunCommand(const std::string& command) {
   ToolRun run;
-  FILE* pipe = popen(command.c_str(), "r");
+  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
   if (pipe == nullptr) return run;
   std::array<char, 4096> buffer;
   size_t n = 0;
@@ -24,6 +19,14 @@ ToolRun RunProgram(const std::string& program, const std::string& args) {
   const int status = pclose(pipe);
   run.status = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   return run;
+}
+
+ToolRun RunProgram(const std::string& program, const std::string& args) {
+  const char* env = std::getenv("SOMASIM_BIN_DIR");
+  const std::string bin =
+      env != nullptr ? std::string(env)
+                     : std::filesystem::read_symlink("/proc/self/exe").parent_path().string();
+  return RunCommand(bin + "/" + program + " " + args);
 }
 
 }  // namespace somasim::testing

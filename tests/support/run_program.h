@@ -10,6 +10,9 @@ struct ToolRun {
   std::string out;  // stdout, with stderr appended
 };
 
+// Runs a shell command line, stdout captured and stderr appended to it.
+ToolRun RunCommand(const std::string& command);
+
 // Runs build/bin/<program> with arguments (quoted by the caller). CTest sets SOMASIM_BIN_DIR;
 // run by hand, the program is looked up beside the test executable.
 ToolRun RunProgram(const std::string& program, const std::string& args);

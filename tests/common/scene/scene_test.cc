@@ -78,8 +78,8 @@ TEST(Scene, LoadsEveryField) {
 
 TEST(Scene, TheExampleScenesLoad) {
   for (const char* name : {"liver_creep", "liver_creep_half"}) {
-    const Scene scene = LoadSceneFile(std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/" + name +
-                                      ".scene.txtpb");
+    const Scene scene =
+        LoadSceneFile(std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/" + name + ".scene.txtpb");
     EXPECT_EQ(scene.organ(0).builtin(), "liver4055");
     EXPECT_TRUE(scene.organ(0).material().liver_nava2008_prony());
     EXPECT_EQ(scene.load(0).region().nodes().id(0), 1738);
@@ -157,6 +157,27 @@ TEST(Scene, EveryTruncationIsRefusedOrComplete) {
     }
   }
   EXPECT_GT(refused, static_cast<int>(text.size()) / 2);
+}
+
+TEST(Scene, ReducedPolynomialNeedsItsCoefficients) {
+  const std::string head =
+      "format_version: 1\norgan {\n  id: \"o\"\n  builtin: \"plate192\"\n"
+      "  model { fem_hyperelastic {} }\n  material {\n    density: 1000\n";  // lines 1–7
+  const auto scene = [&](const std::string& law) { return head + law + "\n  }\n}\n"; };
+  const Scene good = ParseScene(scene("reduced_polynomial { c: [1000, 500] d: [1e-4, 0] }"), "s");
+  EXPECT_EQ(good.organ(0).material().reduced_polynomial().c_size(), 2);
+  ExpectRefused(scene("reduced_polynomial { d: 1e-4 }"), 8, "organ[0].material.reduced_polynomial",
+                "1 to 5 coefficients c");
+  ExpectRefused(scene("reduced_polynomial { c: [1, 2, 3, 4, 5, 6] d: 1e-4 }"), 8,
+                "organ[0].material.reduced_polynomial", "1 to 5 coefficients c");
+  ExpectRefused(scene("reduced_polynomial { c: 1 }"), 8, "organ[0].material.reduced_polynomial",
+                "1 to 3 coefficients d");
+  ExpectRefused(scene("reduced_polynomial { c: [0, 1] d: 1e-4 }"), 8,
+                "organ[0].material.reduced_polynomial.c[0]", "C10");
+  ExpectRefused(scene("reduced_polynomial { c: [1, nan] d: 1e-4 }"), 8,
+                "organ[0].material.reduced_polynomial.c[1]", "finite");
+  ExpectRefused(scene("reduced_polynomial { c: 1 d: [1e-4, -1] }"), 8,
+                "organ[0].material.reduced_polynomial.d[1]", ">= 0");
 }
 
 TEST(SceneLines, NameTheLineOfAFieldOrOfItsNearestParent) {

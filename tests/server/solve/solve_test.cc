@@ -9,7 +9,6 @@
 #include <filesystem>
 #include <fstream>
 #include <numeric>
-#include <pugixml.hpp>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -19,6 +18,7 @@
 #include "common/mesh_io/mesh_io.h"
 #include "server/solve/organ_builder.h"
 #include "server/solve/solve_runner.h"
+#include "tests/server/solve/solve_fixtures.h"
 #include "tests/support/mesh_fixtures.h"
 #include "tests/support/sanitizer.h"
 
@@ -56,37 +56,10 @@ int64_t BarNodes() { return testing::BoxTets(4, 2, 2).vertices.cols(); }
 std::string Scene(const std::string& body) { return "format_version: 1\nname: \"t\"\n" + body; }
 
 SolveSummary Solve(const std::string& dir, const std::string& text) {
-  scene::SceneLines lines;
-  const scene::Scene s = scene::ParseScene(text, dir + "/test.scene.txtpb", &lines);
-  SolveOptions options;
-  options.scene_dir = dir;
-  options.out_dir = dir + "/out";
-  return RunSolve(s, lines, options);
+  return testing::SolveText(dir, text);
 }
-
-// The values of the point data array `name` in a VTU file written by the solver (ASCII), and the
-// points, both 3 per node.
-struct VtuArrays {
-  std::vector<double> points, values;
-};
-std::vector<double> ParseNumbers(const char* text) {
-  std::istringstream in(text);
-  std::vector<double> v;
-  double x = 0.0;
-  while (in >> x) v.push_back(x);
-  return v;
-}
-VtuArrays ReadVtu(const std::string& path, const std::string& name) {
-  pugi::xml_document doc;
-  EXPECT_TRUE(doc.load_file(path.c_str())) << path;
-  const pugi::xml_node piece = doc.child("VTKFile").child("UnstructuredGrid").child("Piece");
-  VtuArrays out;
-  out.points = ParseNumbers(piece.child("Points").child("DataArray").text().get());
-  for (const pugi::xml_node& a : piece.child("PointData").children("DataArray")) {
-    if (name == a.attribute("Name").value()) out.values = ParseNumbers(a.text().get());
-  }
-  return out;
-}
+using testing::ReadVtu;
+using testing::VtuArrays;
 
 // Uniaxial stretch with ν = 0: a homogeneous strain δ/L that linear elements reproduce exactly,
 // so every node moves by δ x / L and the supports pull with E A δ / L.
