@@ -123,6 +123,23 @@ SurfaceMesh ExtractBoundarySurface(const TetMesh& mesh) {
   return surface;
 }
 
+std::vector<int32_t> UnreferencedNodes(int32_t num_nodes, const Triangles& triangles,
+                                       const Tetrahedra& tets) {
+  std::vector<char> used(static_cast<size_t>(std::max(num_nodes, 0)), 0);
+  const auto mark = [&](const int32_t* cells, Eigen::Index size) {
+    for (Eigen::Index k = 0; k < size; ++k) {
+      if (cells[k] >= 0 && cells[k] < num_nodes) used[static_cast<size_t>(cells[k])] = 1;
+    }
+  };
+  mark(triangles.data(), triangles.size());
+  mark(tets.data(), tets.size());
+  std::vector<int32_t> unused;
+  for (size_t i = 0; i < used.size(); ++i) {
+    if (used[i] == 0) unused.push_back(static_cast<int32_t>(i));
+  }
+  return unused;
+}
+
 SurfaceMesh CompactSurface(const SurfaceMesh& surface, std::vector<int32_t>* old_to_new) {
   std::vector<int32_t> map(static_cast<size_t>(surface.vertices.cols()), -1);
   for (Eigen::Index i = 0; i < surface.triangles.size(); ++i) {

@@ -32,6 +32,11 @@ Eigen::Matrix<int32_t, 4, Eigen::Dynamic> TetFaceNeighbours(int32_t num_nodes,
 // (tetrahedron, local face), which makes the result deterministic.
 SurfaceMesh ExtractBoundarySurface(const TetMesh& mesh);
 
+// The nodes (ascending) of 0 .. num_nodes-1 that no triangle and no tetrahedron uses. Indices
+// out of range are ignored.
+std::vector<int32_t> UnreferencedNodes(int32_t num_nodes, const Triangles& triangles,
+                                       const Tetrahedra& tets);
+
 // Surface with unreferenced vertices removed; old_to_new (num old vertices, -1 = dropped) maps.
 SurfaceMesh CompactSurface(const SurfaceMesh& surface, std::vector<int32_t>* old_to_new);
 

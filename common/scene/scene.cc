@@ -144,11 +144,6 @@ void CheckRegion(const Where& w, const Region& region) {
   w.FailHere("needs a box, a sphere or nodes");
 }
 
-bool IsFem(const Model& model) {
-  return model.kind_case() == Model::kFemLinear || model.kind_case() == Model::kFemCorotational ||
-         model.kind_case() == Model::kFemHyperelastic;
-}
-
 void CheckPoisson(const Where& m, double nu) {
   if (!(nu > -1.0 && nu < 0.5)) m.Fail("poisson_ratio", "must lie in (-1, 0.5)");
 }
@@ -209,10 +204,10 @@ void CheckMaterial(const Where& m, const Material& material, const Model& model)
     }
   } else {
     m.Positive("youngs_modulus", material.youngs_modulus());
-    if (IsFem(model)) CheckPoisson(m, material.poisson_ratio());
+    if (IsFemModel(model)) CheckPoisson(m, material.poisson_ratio());
   }
   const bool viscous = material.prony_size() > 0 || material.liver_nava2008_prony();
-  if (viscous && !IsFem(model)) m.FailHere("prony terms (QLV) need a FEM model");
+  if (viscous && !IsFemModel(model)) m.FailHere("prony terms (QLV) need a FEM model");
   if (material.prony_size() > 0 && material.liver_nava2008_prony()) {
     m.Fail("liver_nava2008_prony", "give either prony terms or liver_nava2008_prony, not both");
   }
@@ -351,6 +346,11 @@ SceneError::SceneError(const std::string& file, int line, const std::string& fie
       file_(file),
       line_(line),
       field_(field) {}
+
+bool IsFemModel(const Model& model) {
+  return model.kind_case() == Model::kFemLinear || model.kind_case() == Model::kFemCorotational ||
+         model.kind_case() == Model::kFemHyperelastic;
+}
 
 int SceneLines::LineOf(const std::string& field) const {
   std::string f = field;

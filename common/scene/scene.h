@@ -31,6 +31,9 @@ class SceneError : public std::runtime_error {
   std::string field_;
 };
 
+// True for the finite-element kinds (fem_linear, fem_corotational, fem_hyperelastic).
+bool IsFemModel(const Model& model);
+
 // Where a scene's messages were written, so that faults found later (when the scene is built on
 // its meshes) still name the file, the line and the field.
 class SceneLines {

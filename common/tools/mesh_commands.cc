@@ -53,12 +53,8 @@ MeshSummary Summarise(const MeshData& m) {
   s.tetrahedra = m.tetrahedra.cols();
   s.triangles = m.triangles.cols();
   s.bbox = mesh::ComputeBoundingBox(m.vertices);
-  std::vector<char> used(static_cast<size_t>(s.nodes), 0);
-  for (Eigen::Index i = 0; i < m.triangles.size(); ++i)
-    used[static_cast<size_t>(m.triangles.data()[i])] = 1;
-  for (Eigen::Index i = 0; i < m.tetrahedra.size(); ++i)
-    used[static_cast<size_t>(m.tetrahedra.data()[i])] = 1;
-  for (char u : used) s.unreferenced_nodes += u ? 0 : 1;
+  s.unreferenced_nodes = static_cast<int64_t>(
+      mesh::UnreferencedNodes(static_cast<int32_t>(s.nodes), m.triangles, m.tetrahedra).size());
 
   mesh::SurfaceMesh surface;
   if (s.tetrahedra > 0) {

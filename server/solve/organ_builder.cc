@@ -38,11 +38,6 @@ const char* ModelName(const Model& model) {
   return "none";
 }
 
-bool IsFem(const Model& model) {
-  return model.kind_case() == Model::kFemLinear || model.kind_case() == Model::kFemCorotational ||
-         model.kind_case() == Model::kFemHyperelastic;
-}
-
 models::fem::FemParameters FemParametersOf(const scene::Organ& organ) {
   namespace fem = models::fem;
   const scene::Material& m = organ.material();
@@ -316,7 +311,7 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
   out.id = organ.id();
   out.field = "organ[" + std::to_string(index) + "]";
   out.model_name = ModelName(organ.model());
-  const bool fem = IsFem(organ.model());
+  const bool fem = scene::IsFemModel(organ.model());
   mesh::SurfaceMesh surface;
   if (organ.mesh_case() == scene::Organ::kBuiltin) {
     out.mesh_name = "builtin:" + organ.builtin();
@@ -372,23 +367,8 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
   }
 
   // Nodes in no element have no mass and no stiffness: they are held still, and reported.
-  std::vector<char> used(static_cast<size_t>(out.rest().cols()), 0);
-  const auto mark = [&](const auto& cells) {
-    for (Eigen::Index c = 0; c < cells.cols(); ++c) {
-      for (Eigen::Index r = 0; r < cells.rows(); ++r) {
-        const int32_t i = cells(r, c);
-        if (i >= 0 && i < static_cast<int32_t>(used.size())) used[static_cast<size_t>(i)] = 1;
-      }
-    }
-  };
-  if (out.volume.tetrahedra.cols() > 0) {
-    mark(out.volume.tetrahedra);
-  } else {
-    mark(out.triangles);
-  }
-  for (size_t i = 0; i < used.size(); ++i) {
-    if (used[i] == 0) out.unused_nodes.push_back(static_cast<int32_t>(i));
-  }
+  out.unused_nodes = mesh::UnreferencedNodes(static_cast<int32_t>(out.rest().cols()), out.triangles,
+                                             out.volume.tetrahedra);
 
   try {
     if (fem) {

@@ -236,10 +236,10 @@ void RunStatic(const scene::Scene& scene, const SolveOptions& options, OrganRun&
   const mesh::Points& rest = run.organ.rest();
   mesh::Points reactions = mesh::Points::Zero(3, rest.cols());
   // The last equilibrium's loads (none at the start) and this output's.
-  mesh::Points last_forces = mesh::Points::Zero(3, rest.cols()), last_positions(3, 0);
-  for (const int32_t i : run.prescribed) {
-    last_positions.conservativeResize(3, last_positions.cols() + 1);
-    last_positions.col(last_positions.cols() - 1) = rest.col(i);
+  mesh::Points last_forces = mesh::Points::Zero(3, rest.cols());
+  mesh::Points last_positions(3, static_cast<Eigen::Index>(run.prescribed.size()));
+  for (size_t k = 0; k < run.prescribed.size(); ++k) {
+    last_positions.col(static_cast<Eigen::Index>(k)) = rest.col(run.prescribed[k]);
   }
   double last_gravity = 0.0;
   for (size_t k = 0; k < times.size(); ++k) {
@@ -358,6 +358,9 @@ void RunDynamic(const scene::Scene& scene, const SolveOptions& options, OrganRun
   inputs.prescribed_nodes = run.prescribed;
   inputs.prescribed_positions = &run.prescribed_positions;
   mesh::Points internal = mesh::Points::Zero(3, run.organ.rest().cols());
+  std::vector<char> held(static_cast<size_t>(internal.cols()), 0);
+  for (const int32_t i : run.organ.fixed_nodes) held[static_cast<size_t>(i)] = 1;
+  for (const int32_t i : run.prescribed) held[static_cast<size_t>(i)] = 1;
   // The supports' force: -(internal + external) on the held nodes (+ their weight for FEM,
   // whose masses are known); inertia and damping left out.
   const auto reactions = [&] {
@@ -369,9 +372,6 @@ void RunDynamic(const scene::Scene& scene, const SolveOptions& options, OrganRun
         r.col(i) -= m[static_cast<size_t>(i)] * inputs.gravity;
       }
     }
-    std::vector<char> held(static_cast<size_t>(r.cols()), 0);
-    for (const int32_t i : run.organ.fixed_nodes) held[static_cast<size_t>(i)] = 1;
-    for (const int32_t i : run.prescribed) held[static_cast<size_t>(i)] = 1;
     for (Eigen::Index i = 0; i < r.cols(); ++i) {
       if (held[static_cast<size_t>(i)] == 0) r.col(i).setZero();
     }

@@ -65,6 +65,13 @@ BlockSparseMatrix BlockSparseMatrix::FromTets(const mesh::Tetrahedra& tets, int3
 namespace {
 
 // y = A x, the portable path (and the reference of the vector one).
+// (sx, sy, sz) += B v for a 3×3 block B (column-major) and v = v[0..2].
+inline void AddBlockProduct(const double* b, const double* v, double* sx, double* sy, double* sz) {
+  *sx += b[0] * v[0] + b[3] * v[1] + b[6] * v[2];
+  *sy += b[1] * v[0] + b[4] * v[1] + b[7] * v[2];
+  *sz += b[2] * v[0] + b[5] * v[1] + b[8] * v[2];
+}
+
 void MultiplyScalar(const int32_t* row_start, const int32_t* columns, const double* values,
                     size_t n, const double* x, double* y, const uint8_t* constrained) {
   for (size_t i = 0; i < n; ++i) {
@@ -79,11 +86,7 @@ void MultiplyScalar(const int32_t* row_start, const int32_t* columns, const doub
          ++k) {
       const auto j = static_cast<size_t>(columns[k]);
       if (constrained != nullptr && constrained[j] != 0) continue;
-      const double* b = values + 9 * k;  // column-major
-      const double xj = x[3 * j], yj = x[3 * j + 1], zj = x[3 * j + 2];
-      sx += b[0] * xj + b[3] * yj + b[6] * zj;
-      sy += b[1] * xj + b[4] * yj + b[7] * zj;
-      sz += b[2] * xj + b[5] * yj + b[8] * zj;
+      AddBlockProduct(values + 9 * k, x + 3 * j, &sx, &sy, &sz);
     }
     y[3 * i] = sx;
     y[3 * i + 1] = sy;
@@ -104,10 +107,7 @@ void MultiplyUpperScalar(const int32_t* row_start, const int32_t* columns, const
       const auto j = static_cast<size_t>(columns[k]);
       if (constrained != nullptr && constrained[j] != 0) continue;
       const double* b = values + 9 * k;  // column-major
-      const double xj = x[3 * j], yj = x[3 * j + 1], zj = x[3 * j + 2];
-      sx += b[0] * xj + b[3] * yj + b[6] * zj;
-      sy += b[1] * xj + b[4] * yj + b[7] * zj;
-      sz += b[2] * xj + b[5] * yj + b[8] * zj;
+      AddBlockProduct(b, x + 3 * j, &sx, &sy, &sz);
       if (j == i) continue;
       y[3 * j] += b[0] * xi + b[1] * yi + b[2] * zi;
       y[3 * j + 1] += b[3] * xi + b[4] * yi + b[5] * zi;

@@ -34,6 +34,16 @@ TEST(Topology, BoundaryTrianglesFaceOutwards) {
   }
 }
 
+TEST(Topology, UnreferencedNodesAreThoseNoElementUses) {
+  Triangles triangles(3, 1);
+  triangles << 0, 2, 5;
+  Tetrahedra tets(4, 1);
+  tets << 1, 2, 3, 9;  // 9 is out of range for 7 nodes: ignored
+  EXPECT_EQ(UnreferencedNodes(7, triangles, tets), (std::vector<int32_t>{4, 6}));
+  EXPECT_EQ(UnreferencedNodes(3, Triangles(3, 0), Tetrahedra(4, 0)),
+            (std::vector<int32_t>{0, 1, 2}));
+}
+
 TEST(Topology, OpenPatchIsManifoldButNotWatertight) {
   const mesh_io::MeshData patch = testing::SquarePatch(3);
   const SurfaceTopology topo = AnalyseSurfaceTopology({patch.vertices, patch.triangles});
