@@ -1,0 +1,87 @@
+// The local force model (SPEC §1, §5.1–5.2): what the server hands the haptic node so that its
+// 1 kHz loop never waits on the network. The physics steps at 100 Hz–1 kHz and evaluates contact
+// there; in between, the haptic node evaluates this model for every new device position.
+//
+// Contact is a god-object proxy on a plane (seed 002 §3.1, eq. 12: f = -K_t (x_device -
+// x_proxy)): the tissue surface near the contact is the plane through `contact_point` with
+// outward unit `normal`, where the surface would be with no force on it. The tool's coupling
+// stiffness K_t and the tissue's compliance there act in series, so a device at penetration
+// d = n·(contact_point - x) > 0 feels
+//   f = k_n d n,   k_n = 1 / (1/K_t + nᵀ C n)   (C = K_tissue⁻¹, the local tissue compliance),
+// frictionless (the proxy slides on the plane) and unilateral (the surface pushes, never pulls).
+// A grasp is bilateral: f = -K_g (x - grasp_anchor), K_g = (K_t⁻¹ I + C)⁻¹ (3 × 3). Damping
+// resists the device's velocity while in contact or grasping. The sum is clamped to
+// force_limit. Evaluation allocates nothing and never returns a non-finite force: a model or
+// device state that is not finite gives zero force and says so.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+
+namespace somasim::contact {
+
+// Fixed size, no pointers: travels over DDS as it is (the server issue maps it to IDL).
+struct LocalForceModel {
+  uint64_t sequence = 0;  // increases by one per model the server publishes
+  double sim_time = 0.0;  // [s] simulation time of the physics state it comes from
+
+  bool in_contact = false;
+  Eigen::Vector3d contact_point = Eigen::Vector3d::Zero();  // [m] on the unloaded surface
+  Eigen::Vector3d normal = Eigen::Vector3d::UnitZ();        // outward, |n| = 1
+  double contact_stiffness = 0.0;                           // k_n [N/m], >= 0
+
+  bool grasping = false;
+  Eigen::Vector3d grasp_anchor = Eigen::Vector3d::Zero();     // [m] device position of zero force
+  Eigen::Matrix3d grasp_stiffness = Eigen::Matrix3d::Zero();  // K_g [N/m], symmetric PSD
+
+  // The tissue's local stiffness K_tissue [N/m] at the contact (3 × 3 symmetric PSD): carried
+  // for the viewer's display and the recording; the evaluation uses k_n and K_g, which include it.
+  Eigen::Matrix3d tissue_stiffness = Eigen::Matrix3d::Zero();
+  double damping = 0.0;       // [N s/m], >= 0, along the normal in contact, full in a grasp
+  double force_limit = 10.0;  // [N], > 0: |f| never exceeds it
+};
+
+// Why a model cannot be used (nullptr: it can). For samples that arrive from outside (DDS).
+// Checks: every number finite; |normal| = 1 within 1e-6 when in contact; stiffnesses >= 0;
+// grasp_stiffness and tissue_stiffness symmetric (1e-9 relative) with no eigenvalue below
+// -1e-9 of the largest; damping >= 0; force_limit > 0.
+const char* LocalForceModelError(const LocalForceModel& model);
+
+struct ForceSample {
+  Eigen::Vector3d force = Eigen::Vector3d::Zero();  // [N] on the device (the hand feels it)
+  bool in_contact = false;  // the device is below the contact plane
+  bool clamped = false;     // |force| was limited to force_limit
+  bool invalid = false;     // the model or the device state was not finite: force is zero
+};
+
+// The force on a device at position x [m] moving at velocity v [m/s]. Allocation-free, no
+// locks, bounded: |force| <= force_limit (or 0), always finite — whatever the model holds.
+ForceSample EvaluateLocalForceModel(const LocalForceModel& model, const Eigen::Vector3d& x,
+                                    const Eigen::Vector3d& v);
+
+// What the server knows after a contact update, from which it makes the model.
+struct ContactForModel {
+  // Contact: the proxy on the deformed surface, its outward normal, and the device position at
+  // the update [m]. The proxy force there is K_t (proxy - device).
+  bool in_contact = false;
+  Eigen::Vector3d proxy = Eigen::Vector3d::Zero();
+  Eigen::Vector3d normal = Eigen::Vector3d::UnitZ();
+  Eigen::Vector3d device = Eigen::Vector3d::Zero();
+  // Grasp: the force the grasped tissue exerts on the tool [N] at `device`.
+  bool grasping = false;
+  Eigen::Vector3d grasp_force = Eigen::Vector3d::Zero();
+  double tool_stiffness = 1000.0;  // K_t [N/m], > 0
+  // The tissue's local compliance C [m/N] (3 × 3 symmetric PSD) at the contact or grasp.
+  Eigen::Matrix3d tissue_compliance = Eigen::Matrix3d::Zero();
+  double damping = 0.0;
+  double force_limit = 10.0;
+};
+
+// The local force model consistent with `contact`: at x = contact.device it reproduces the
+// server's force (the proxy force in contact, grasp_force in a grasp, up to the clamp), and
+// around it it varies with the series stiffnesses above. contact_point = proxy + (n·f) (nᵀ C n) n
+// (the unloaded surface lies that far beyond the loaded one); grasp_anchor = device + K_g⁻¹ f.
+LocalForceModel MakeLocalForceModel(const ContactForModel& contact, uint64_t sequence,
+                                    double sim_time);
+
+}  // namespace somasim::contact
