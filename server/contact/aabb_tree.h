@@ -6,8 +6,17 @@
 // with barycentric coordinates. Pure physics: no I/O; Refit and every query allocate nothing.
 //
 // Exactness: boxes are stored in single precision rounded outwards (they always contain their
-// triangles), the triangle tests are exact double-precision ones (triangle_queries.h), so every
-// query answers exactly what a brute-force loop over all triangles answers.
+// triangles) and only prune, with a margin; the triangle tests are the double-precision ones of
+// triangle_queries.h (FirstHit's is watertight: a segment crossing a closed surface always hits),
+// so every query answers exactly what a brute-force loop over all triangles with those functions
+// answers (ties go to the smallest triangle index).
+//
+// Layout (private): 32-byte nodes in depth-first order (first child next, second child by
+// index), leaves holding a range of a triangle permutation with the triangles' vertex indices
+// copied alongside; for Refit each leaf's distinct vertices (one pass over leaves: box in
+// double, SSE2 or AVX2, rounded outwards to float once) and the internal nodes in reverse
+// depth-first order (one pass, float min/max). Depth is bounded (kMaxDepth), so traversals use
+// a fixed stack.
 #pragma once
 
 #include <Eigen/Core>
@@ -49,9 +58,13 @@ class AabbTree {
   int32_t num_triangles() const;
   int32_t num_nodes() const;  // tree nodes (for tests and benchmarks)
 
-  // Moves every box to the vertices' new positions (same N and triangles as at build).
-  // Allocation-free. Positions must be finite (the models never publish NaN).
+  // Moves every box to the vertices' new positions (same N and triangles as at build; throws
+  // std::invalid_argument on another N). Allocation-free and copy-free: the tree keeps a
+  // reference to `positions`, which the queries read, so that matrix must stay alive and
+  // unchanged until the next Refit or the tree's end (refit again after changing it). Passing a
+  // temporary does not compile. Positions must be finite (the models never publish NaN).
   void Refit(const mesh::Points& positions);
+  void Refit(const mesh::Points&& positions) = delete;
 
   // The crossing of segment pq with the surface nearest to p (smallest t), using the positions
   // of the last build or refit. False when pq crosses nothing.
@@ -70,19 +83,54 @@ class AabbTree {
   bool NearestToSegment(const Eigen::Vector3d& p, const Eigen::Vector3d& q, double radius,
                         SurfacePoint* nearest) const;
 
-  // Positions of the last build or refit (what the queries test against).
-  const mesh::Points& positions() const { return positions_; }
+  // Positions of the last build or refit (what the queries test against): the tree's own copy
+  // made at build, or the matrix the last Refit was given (not copied: copying 3 × N doubles was
+  // ~10 % of Refit).
+  const mesh::Points& positions() const { return external_ != nullptr ? *external_ : positions_; }
   const mesh::Triangles& triangles() const { return triangles_; }
 
+  // Traversal stacks hold this many nodes; the build guarantees depth < kMaxDepth (midpoint
+  // splits stop at depth kMaxMidpointDepth, below it every split is an even split by count,
+  // which adds at most log2(T) < 32 levels), so a degenerate mesh cannot overflow them.
+  static constexpr int kMaxMidpointDepth = 48;
+  static constexpr int kMaxDepth = 96;
+  int max_depth() const { return max_depth_; }  // deepest leaf (root = 0), for tests
+
  private:
-  mesh::Points positions_;     // 3 × N: the last build's or refit's copy
-  mesh::Triangles triangles_;  // 3 × T
-  // The implementation's layout (nodes, boxes, leaf ranges, per-leaf vertex lists...) is
-  // private to aabb_tree.cc.
-  struct Node;
+  // A node: its box in single precision rounded outwards (it always contains its triangles),
+  // 32 bytes so two share a cache line. Nodes are in depth-first order: an internal node's
+  // first child is the next node, `index` is its second child; a leaf (count > 0) holds the
+  // triangles order_[index .. index + count).
+  // Layout lo, index, hi, count: Refit's SSE2 pass loads lo or hi with the next int as one
+  // 16-byte vector and stores back only the three box lanes.
+  struct alignas(32) Node {
+    float lo[3];
+    int32_t index;
+    float hi[3];
+    int32_t count;  // 0: internal
+  };
+  // A leaf for Refit: its node and its distinct vertices leaf_vertices_[vertex_begin ..
+  // vertex_begin + vertex_count).
+  struct Leaf {
+    int32_t node;
+    int32_t vertex_begin;
+    int32_t vertex_count;
+  };
+  mesh::Points positions_;                  // 3 × N: the build's copy
+  const mesh::Points* external_ = nullptr;  // 3 × N: the last Refit's positions, if any
+  mesh::Triangles triangles_;               // 3 × T, as given
   std::vector<Node> nodes_;
-  std::vector<int32_t> leaf_triangles_;
-  std::vector<int32_t> leaf_vertices_;
+  std::vector<Leaf> leaves_;             // in Refit's order: by vertex_count
+  std::vector<int32_t> leaf_vertices_;   // each leaf's distinct vertices, leaf after leaf
+  std::vector<int32_t> internal_;        // internal nodes, children before parents
+  std::vector<int32_t> order_;           // T: triangle index at each leaf slot
+  std::vector<int32_t> order_vertices_;  // 3 × T: the vertex indices of order_'s triangles
+  double scale_ = 0.0;                   // max |coordinate| of the root box [m], for margins
+  int max_depth_ = 0;
 };
+
+// For tests: false makes Refit take its portable (SSE2 / scalar) leaf pass even where AVX2 is
+// available; both give identical boxes. Default true. Set it only while no tree is refitting.
+void SetAabbRefitAvx2ForTesting(bool enabled);
 
 }  // namespace somasim::contact

@@ -10,9 +10,16 @@
 //   f = k_n d n,   k_n = 1 / (1/K_t + nᵀ C n)   (C = K_tissue⁻¹, the local tissue compliance),
 // frictionless (the proxy slides on the plane) and unilateral (the surface pushes, never pulls).
 // A grasp is bilateral: f = -K_g (x - grasp_anchor), K_g = (K_t⁻¹ I + C)⁻¹ (3 × 3). Damping
-// resists the device's velocity while in contact or grasping. The sum is clamped to
-// force_limit. Evaluation allocates nothing and never returns a non-finite force: a model or
-// device state that is not finite gives zero force and says so.
+// resists the device's velocity while in contact or grasping: in contact along n only, and
+// never so much that the surface pulls (f_n = max(0, k_n d - b n·v)); in a grasp -b v in full
+// (and then not again in the contact term). The sum is clamped to force_limit, keeping its
+// direction. Evaluation allocates nothing and never returns a non-finite force: a model or
+// device state that is not finite (or whose arithmetic overflows, only possible with absurd
+// magnitudes ~1e150), a negative k_n or damping, or a force_limit that is not a positive
+// normal double gives zero force and says so (ForceSample::invalid). It checks finiteness and
+// signs only (a few ns); symmetry and definiteness are LocalForceModelError's, for the receiver
+// to call once per arriving model. Ramping to zero for a stale model and the rate limit (SPEC
+// §7) are the haptic node's.
 #pragma once
 
 #include <Eigen/Core>
@@ -49,9 +56,9 @@ const char* LocalForceModelError(const LocalForceModel& model);
 
 struct ForceSample {
   Eigen::Vector3d force = Eigen::Vector3d::Zero();  // [N] on the device (the hand feels it)
-  bool in_contact = false;  // the device is below the contact plane
-  bool clamped = false;     // |force| was limited to force_limit
-  bool invalid = false;     // the model or the device state was not finite: force is zero
+  bool in_contact = false;                          // the device is below the contact plane
+  bool clamped = false;                             // |force| was limited to force_limit
+  bool invalid = false;  // the model or device state was unusable: force is zero
 };
 
 // The force on a device at position x [m] moving at velocity v [m/s]. Allocation-free, no
@@ -78,9 +85,17 @@ struct ContactForModel {
 };
 
 // The local force model consistent with `contact`: at x = contact.device it reproduces the
-// server's force (the proxy force in contact, grasp_force in a grasp, up to the clamp), and
-// around it it varies with the series stiffnesses above. contact_point = proxy + (n·f) (nᵀ C n) n
-// (the unloaded surface lies that far beyond the loaded one); grasp_anchor = device + K_g⁻¹ f.
+// server's force (the proxy force in contact — its normal part, which is all of it for a
+// god-object proxy, whose offset from the device is along n — grasp_force in a grasp, up to
+// the clamp), and around it it varies with the series stiffnesses above. With the proxy force
+// f = K_t (proxy - device): contact_point = proxy + (n·f) (nᵀ C n) n (the load -f on the tissue
+// moved its surface inward by that much, so the unloaded surface lies that far beyond the
+// loaded one; at the device d = (n·f)(1/K_t + nᵀ C n) = (n·f)/k_n); grasp_anchor = device +
+// K_g⁻¹ f with K_g⁻¹ = K_t⁻¹ I + C. C is symmetrised and its eigenvalues at rounding level below
+// zero clipped; tissue_stiffness = C⁻¹ with a held (C = 0) direction shown as 1e12 N/m. Throws
+// std::invalid_argument naming the field for non-finite data, tool_stiffness <= 0, an
+// asymmetric or indefinite compliance, damping < 0, force_limit <= 0, a zero normal in contact
+// (the normal is normalised). Allocates nothing.
 LocalForceModel MakeLocalForceModel(const ContactForModel& contact, uint64_t sequence,
                                     double sim_time);
 

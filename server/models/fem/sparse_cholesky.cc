@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <stdexcept>
 #include <string>
+#include <vector>
 
 namespace somasim::models::fem {
 
@@ -17,6 +18,13 @@ struct SparseCholesky::Impl {
   cholmod_dense* work_e = nullptr;
   int32_t size = 0;
   bool factorised = false;
+  // InverseBlock: a simplicial copy of the factor and its workspace (made on first use).
+  cholmod_factor* simplicial = nullptr;
+  std::vector<int32_t> inverse_perm;  // row of the permuted system of each original index
+  std::vector<uint8_t> mark;          // size: on the current path
+  std::vector<int32_t> path;
+  std::vector<double> path_values;  // size × right-hand sides, zero off the current path
+  std::vector<int32_t> order;       // blocks in elimination order
 
   Impl() {
     cholmod_start(&common);
@@ -30,6 +38,7 @@ struct SparseCholesky::Impl {
   }
   ~Impl() {
     cholmod_free_factor(&factor, &common);
+    cholmod_free_factor(&simplicial, &common);
     cholmod_free_dense(&rhs, &common);
     cholmod_free_dense(&solution, &common);
     cholmod_free_dense(&work_y, &common);
@@ -63,6 +72,7 @@ SparseCholesky::~SparseCholesky() = default;
 void SparseCholesky::Analyse(const LowerCsc& matrix) {
   cholmod_sparse a = Impl::View(matrix);
   cholmod_free_factor(&impl_->factor, &impl_->common);
+  cholmod_free_factor(&impl_->simplicial, &impl_->common);
   impl_->factor = cholmod_analyze(&a, &impl_->common);
   if (impl_->factor == nullptr) {
     throw std::runtime_error("cholmod_analyze failed, status " +
@@ -77,6 +87,7 @@ void SparseCholesky::Analyse(const LowerCsc& matrix) {
 
 bool SparseCholesky::Factorise(const LowerCsc& matrix) {
   cholmod_sparse a = Impl::View(matrix);
+  cholmod_free_factor(&impl_->simplicial, &impl_->common);  // InverseBlock's copy is stale
   impl_->common.status = CHOLMOD_OK;  // a previous CHOLMOD_NOT_POSDEF is not sticky here
   const int ok = cholmod_factorize(&a, impl_->factor, &impl_->common);
   // minor = n on success; the column where positive definiteness failed otherwise.
@@ -93,6 +104,127 @@ void SparseCholesky::Solve(const double* b, double* x) {
                  &impl_->work_y, &impl_->work_e, &impl_->common);
   const auto* s = static_cast<const double*>(impl_->solution->x);
   std::copy(s, s + impl_->size, x);
+}
+
+void SparseCholesky::InverseBlock(const int32_t* indices, int32_t count, double* block) {
+  InverseBlocks(indices, count, 1, block);
+}
+
+void SparseCholesky::InverseBlocks(const int32_t* indices, int32_t count, int32_t blocks,
+                                   double* out) {
+  Impl& s = *impl_;
+  if (!s.factorised) throw std::runtime_error("SparseCholesky::InverseBlocks: no factor");
+  if (count <= 0 || blocks <= 0) return;
+  const auto n = static_cast<size_t>(s.size);
+  const auto c = static_cast<size_t>(count);
+  const auto num_blocks = static_cast<size_t>(blocks);
+  for (size_t t = 0; t < c * num_blocks; ++t) {
+    if (indices[t] < 0 || indices[t] >= s.size) {
+      throw std::out_of_range("SparseCholesky::InverseBlocks: index out of range");
+    }
+  }
+  if (s.simplicial == nullptr) {
+    // A simplicial LL' copy: CSC columns with the diagonal first and sorted rows below it, so
+    // that the elimination-tree parent of column j is its first off-diagonal row.
+    s.simplicial = cholmod_copy_factor(s.factor, &s.common);
+    if (s.simplicial == nullptr ||
+        cholmod_change_factor(CHOLMOD_REAL, /*to_ll=*/1, /*to_super=*/0, /*to_packed=*/1,
+                              /*to_monotonic=*/1, s.simplicial, &s.common) == 0) {
+      throw std::runtime_error("cholmod: out of memory converting the factor");
+    }
+    const auto* perm = static_cast<const int32_t*>(s.simplicial->Perm);
+    s.inverse_perm.resize(n);
+    for (size_t k = 0; k < n; ++k) {
+      s.inverse_perm[static_cast<size_t>(perm[k])] = static_cast<int32_t>(k);
+    }
+    s.mark.assign(n, 0);
+    s.path.reserve(n);
+    s.path_values.clear();
+  }
+  // Blocks are solved in groups of about 48 right-hand sides, interleaved by row, so that each
+  // entry of L on the groups' paths is loaded once for all of them; grouped in elimination order
+  // (by their first index's row of the permuted system), so that a group's paths share most of
+  // their length and the dense top of the tree is streamed once per group.
+  const size_t group = std::max<size_t>(1, 48 / c);
+  const size_t w_max = c * std::min(group, num_blocks);
+  if (s.path_values.size() < n * w_max) s.path_values.assign(n * w_max, 0.0);
+  std::vector<int32_t>& order = s.order;  // the blocks in elimination order
+  order.resize(num_blocks);
+  for (size_t b = 0; b < num_blocks; ++b) order[b] = static_cast<int32_t>(b);
+  const auto first_row = [&](int32_t b) {
+    return s.inverse_perm[static_cast<size_t>(indices[static_cast<size_t>(b) * c])];
+  };
+  std::sort(order.begin(), order.end(),
+            [&](int32_t a, int32_t b) { return first_row(a) < first_row(b); });
+  const auto* lp = static_cast<const int32_t*>(s.simplicial->p);
+  const auto* li = static_cast<const int32_t*>(s.simplicial->i);
+  const auto* lnz = static_cast<const int32_t*>(s.simplicial->nz);
+  const auto* lx = static_cast<const double*>(s.simplicial->x);
+  double* y = s.path_values.data();
+  for (size_t g0 = 0; g0 < num_blocks; g0 += group) {
+    const size_t members = std::min(group, num_blocks - g0);
+    const size_t w = c * members;  // right-hand sides: member m's column a is m c + a
+    const auto index = [&](size_t t) {
+      return indices[static_cast<size_t>(order[g0 + t / c]) * c + t % c];
+    };
+    // The union of the paths from each permuted index to the root, marked and listed.
+    s.path.clear();
+    for (size_t t = 0; t < w; ++t) {
+      for (int32_t j = s.inverse_perm[static_cast<size_t>(index(t))]; j >= 0;) {
+        if (s.mark[static_cast<size_t>(j)] != 0) break;  // the rest of this path is listed
+        s.mark[static_cast<size_t>(j)] = 1;
+        s.path.push_back(j);
+        j = lnz[j] > 1 ? li[lp[j] + 1] : -1;
+      }
+    }
+    std::sort(s.path.begin(), s.path.end());  // a child precedes its parent: ascending order
+    // y (n × w row-major, zero off the path) = L⁻¹ P E by columns j of L along the path: every
+    // row below the diagonal of column j is an ancestor of j, hence on the path.
+    for (size_t t = 0; t < w; ++t) {
+      y[static_cast<size_t>(s.inverse_perm[static_cast<size_t>(index(t))]) * w + t] = 1.0;
+    }
+    for (const int32_t j : s.path) {
+      const auto start = static_cast<size_t>(lp[j]);
+      const auto end = start + static_cast<size_t>(lnz[j]);
+      double* yj = y + static_cast<size_t>(j) * w;
+      const double diagonal = lx[start];
+      bool any = false;
+      for (size_t t = 0; t < w; ++t) {
+        yj[t] /= diagonal;
+        any = any || yj[t] != 0.0;
+      }
+      if (!any) continue;  // on other members' paths only
+      for (size_t q = start + 1; q < end; ++q) {
+        double* yr = y + static_cast<size_t>(li[q]) * w;
+        const double l = lx[q];
+        for (size_t t = 0; t < w; ++t) yr[t] -= l * yj[t];
+      }
+    }
+    for (size_t m = 0; m < members; ++m) {
+      double* block = out + static_cast<size_t>(order[g0 + m]) * c * c;
+      for (size_t a = 0; a < c; ++a) {
+        for (size_t e = 0; e <= a; ++e) block[a * c + e] = 0.0;
+      }
+      for (const int32_t j : s.path) {
+        const double* yj = y + static_cast<size_t>(j) * w + m * c;
+        for (size_t a = 0; a < c; ++a) {
+          for (size_t e = 0; e <= a; ++e) block[a * c + e] += yj[a] * yj[e];
+        }
+      }
+      for (size_t a = 0; a < c; ++a) {
+        for (size_t e = 0; e < a; ++e) block[e * c + a] = block[a * c + e];
+      }
+    }
+    for (const int32_t j : s.path) {  // leave the workspace clean for the next group
+      s.mark[static_cast<size_t>(j)] = 0;
+      std::fill(y + static_cast<size_t>(j) * w, y + static_cast<size_t>(j + 1) * w, 0.0);
+    }
+  }
+}
+
+double SparseCholesky::ReciprocalConditionEstimate() {
+  if (!impl_->factorised) return 0.0;
+  return cholmod_rcond(impl_->factor, &impl_->common);
 }
 
 }  // namespace somasim::models::fem

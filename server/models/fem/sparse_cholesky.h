@@ -33,6 +33,25 @@ class SparseCholesky {
   bool Factorise(const LowerCsc& matrix);
   // x = A⁻¹ b (size doubles each) with the last successful factorisation.
   void Solve(const double* b, double* x);
+  // The count × count block of A⁻¹ at rows and columns `indices` (count distinct indices in
+  // 0..size-1; `block` column-major), from the last successful factorisation P A Pᵀ = L Lᵀ:
+  // A⁻¹ = (L⁻¹ P)ᵀ (L⁻¹ P), so [A⁻¹]_jk = y_j · y_k with y_j = L⁻¹ P e_j, and y_j is nonzero
+  // only on the elimination-tree path from row j of the permuted system to the root (Gilbert's
+  // theorem): a sparse forward substitution along the union of the paths, a fraction of a
+  // solve (a condensed compliance: the 3 × 3 block of one node). Throws std::out_of_range for
+  // an index out of range. The first call copies the factor into simplicial form and sizes its
+  // workspace (allocates); later calls as large or smaller allocate nothing.
+  void InverseBlock(const int32_t* indices, int32_t count, double* block);
+  // `blocks` such blocks (indices: count × blocks, block b's indices at indices + b count;
+  // block b's result at out + b count²). Grouped internally in elimination order, ~48
+  // right-hand sides interleaved per group: each entry of L on a group's paths is loaded once
+  // for all of them, and neighbouring blocks share most of their paths (the dense top of the
+  // tree). Allocates nothing once its workspace has the size a call needs.
+  void InverseBlocks(const int32_t* indices, int32_t count, int32_t blocks, double* out);
+  // CHOLMOD's rough reciprocal condition estimate of the last factorisation, (min diag L /
+  // max diag L)²: near machine epsilon for a matrix that is singular up to rounding (which a
+  // Cholesky factorisation may still complete with a tiny pivot). 0 without a factorisation.
+  double ReciprocalConditionEstimate();
 
  private:
   struct Impl;

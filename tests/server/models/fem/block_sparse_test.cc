@@ -195,3 +195,98 @@ TEST(SparseCholesky, RefusesAMatrixThatIsNotPositiveDefinite) {
 
 }  // namespace
 }  // namespace somasim::models::fem
+
+namespace somasim::models::fem {
+namespace {
+
+// Selected inversion: diagonal blocks of A⁻¹ by sparse forward substitution along the
+// elimination tree equal the columns of full solves, for single blocks and for many at once
+// (grouped internally), and a repeated call allocates nothing.
+TEST(SparseCholesky, InverseBlocksEqualFullSolves) {
+  // A random sparse SPD matrix: a banded Laplacian-like pattern plus a few long couplings.
+  const int32_t n = 300;
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> value(-1.0, 1.0);
+  std::vector<std::vector<std::pair<int32_t, double>>> columns(static_cast<size_t>(n));
+  std::vector<double> row_sum(static_cast<size_t>(n), 0.0);
+  const auto couple = [&](int32_t i, int32_t j) {  // i > j
+    const double v = value(rng);
+    columns[static_cast<size_t>(j)].push_back({i, v});
+    row_sum[static_cast<size_t>(i)] += std::abs(v);
+    row_sum[static_cast<size_t>(j)] += std::abs(v);
+  };
+  for (int32_t j = 0; j < n; ++j) {
+    for (int32_t d = 1; d <= 4 && j + d < n; ++d) couple(j + d, j);
+    if (j + 97 < n) couple(j + 97, j);
+  }
+  LowerCsc m;
+  m.size = n;
+  m.col_start.push_back(0);
+  for (int32_t j = 0; j < n; ++j) {
+    auto& column = columns[static_cast<size_t>(j)];
+    std::sort(column.begin(), column.end());
+    m.rows.push_back(j);
+    m.values.push_back(row_sum[static_cast<size_t>(j)] + 0.5);  // diagonally dominant
+    for (const auto& [i, v] : column) {
+      m.rows.push_back(i);
+      m.values.push_back(v);
+    }
+    m.col_start.push_back(static_cast<int32_t>(m.rows.size()));
+  }
+  SparseCholesky cholesky;
+  cholesky.Analyse(m);
+  ASSERT_TRUE(cholesky.Factorise(m));
+  EXPECT_GT(cholesky.ReciprocalConditionEstimate(), 1e-6);
+  // The inverse's columns by full solves.
+  std::vector<std::vector<double>> inverse(static_cast<size_t>(n),
+                                           std::vector<double>(static_cast<size_t>(n)));
+  std::vector<double> e(static_cast<size_t>(n), 0.0);
+  for (int32_t j = 0; j < n; ++j) {
+    e[static_cast<size_t>(j)] = 1.0;
+    cholesky.Solve(e.data(), inverse[static_cast<size_t>(j)].data());
+    e[static_cast<size_t>(j)] = 0.0;
+  }
+  const auto want = [&](int32_t i, int32_t j) {
+    return inverse[static_cast<size_t>(j)][static_cast<size_t>(i)];
+  };
+  // One 3 × 3 block of scattered indices.
+  const int32_t one[3] = {5, 150, 299};
+  double block[9];
+  cholesky.InverseBlock(one, 3, block);
+  for (int a = 0; a < 3; ++a) {
+    for (int b = 0; b < 3; ++b) EXPECT_NEAR(block[3 * b + a], want(one[a], one[b]), 1e-13);
+  }
+  // Every node-like triple at once (100 blocks, grouped internally), twice: the second call
+  // reuses the workspace and allocates nothing.
+  std::vector<int32_t> all(static_cast<size_t>(n));
+  for (int32_t i = 0; i < n; ++i) all[static_cast<size_t>(i)] = (i * 7) % n;  // a permutation
+  std::vector<double> blocks(3 * static_cast<size_t>(n));
+  cholesky.InverseBlocks(all.data(), 3, n / 3, blocks.data());
+  {
+    somasim::testing::AllocationCounter counter;
+    cholesky.InverseBlocks(all.data(), 3, n / 3, blocks.data());
+    EXPECT_EQ(counter.count(), 0);
+  }
+  for (int32_t k = 0; k < n / 3; ++k) {
+    for (int a = 0; a < 3; ++a) {
+      for (int b = 0; b < 3; ++b) {
+        EXPECT_NEAR(blocks[9 * static_cast<size_t>(k) + 3 * static_cast<size_t>(b) +
+                           static_cast<size_t>(a)],
+                    want(all[3 * static_cast<size_t>(k) + static_cast<size_t>(a)],
+                         all[3 * static_cast<size_t>(k) + static_cast<size_t>(b)]),
+                    1e-13)
+            << "block " << k;
+      }
+    }
+  }
+  const int32_t bad[1] = {n};
+  EXPECT_THROW(cholesky.InverseBlock(bad, 1, block), std::out_of_range);
+  // A new factorisation of other values: the blocks follow it (no stale copy of the factor).
+  for (size_t k = 0; k < m.values.size(); ++k) m.values[k] *= 2.0;
+  ASSERT_TRUE(cholesky.Factorise(m));
+  cholesky.InverseBlock(one, 3, block);
+  EXPECT_NEAR(block[0], 0.5 * want(one[0], one[0]), 1e-13);
+}
+
+}  // namespace
+}  // namespace somasim::models::fem
