@@ -5,6 +5,8 @@
 #include <cmath>
 #include <limits>
 
+#include "common/mesh_gen/builtin_organs.h"
+#include "server/models/mass_spring_model.h"
 #include "tests/server/contact/contact_fixtures.h"
 #include "tests/server/contact/contact_test_meshes.h"
 #include "tests/support/allocation_counter.h"
@@ -64,6 +66,53 @@ TEST(ToolContact, AProbePressingIntoAnOrganSettlesWhereTheSpringBalancesTheTissu
   EXPECT_NEAR((f - g).norm(), 0.0, 0.02 * g.norm());
   // The proxy is outside the organ.
   EXPECT_LT(testing::WindingNumber(x, press.organ.mesh.surface, press.tool.proxy().proxy()), 0.5);
+}
+
+TEST(ToolContact, AProbeCannotPushThroughAMassSpringSheet) {
+  // seed 002's simple tissue (an open, gently domed patch), an implicit mass-spring sheet held
+  // around its rim like a drum skin, pressed far further than it can give: the proxy stays on
+  // top.
+  const mesh::SurfaceMesh sheet = mesh_gen::GenerateBuiltinOrgan("tissue45").surface;
+  models::MassSpringParameters p;
+  p.youngs_modulus = 100e3;
+  p.integrator = models::MassSpringIntegrator::kImplicitEuler;
+  p.damping_ratio = 0.5;
+  const auto model = models::MassSpringModel::FromSurface(sheet, p);
+  const auto state = model->MakeState();
+  const mesh::Points& x = state->positions;
+  const Eigen::Vector3d centre = 0.5 * (x.rowwise().minCoeff() + x.rowwise().maxCoeff());
+  const double rim =
+      0.8 * (x.topRows<2>().colwise() - centre.head<2>()).colwise().norm().maxCoeff();
+  std::vector<int32_t> held;
+  for (Eigen::Index i = 0; i < x.cols(); ++i) {
+    if ((x.col(i).head<2>() - centre.head<2>()).norm() > rim)
+      held.push_back(static_cast<int32_t>(i));
+  }
+  OrganSurface surface(x, sheet.triangles);
+  ToolPose pose;
+  pose.tip = Eigen::Vector3d(centre.x(), centre.y(), x.row(2).maxCoeff() + 0.01);
+  ToolContact tool(ToolShape{}, ContactSettings{}, pose);
+  const Eigen::Vector3d start = pose.tip;
+  bool touched = false;
+  for (int i = 1; i <= 300; ++i) {
+    pose.tip = start - Eigen::Vector3d(0.0, 0.0, 0.04 * std::min(i, 100) / 100.0);
+    surface.Refit(x);
+    tool.Update(pose, surface, x);
+    // Nothing of the sheet above the proxy: it is still on the side it came from. (Checked
+    // after the update, against the surface it was updated on; the step then moves the sheet.)
+    SegmentHit hit;
+    ASSERT_FALSE(surface.tree().FirstHit(
+        tool.proxy().proxy(), tool.proxy().proxy() + Eigen::Vector3d(0.0, 0.0, 1.0), &hit))
+        << "step " << i;
+    models::StepInputs inputs;
+    inputs.dt = 0.002;
+    inputs.fixed_nodes = held;
+    inputs.attachments = tool.attachments();
+    ASSERT_EQ(model->Step(inputs, state.get()), models::StepStatus::kOk);
+    touched = touched || tool.proxy().in_contact();
+  }
+  EXPECT_TRUE(touched);
+  EXPECT_GT(tool.ToolForce(x).z(), 0.0);
 }
 
 TEST(ToolContact, LiftingTheProbeReleasesTheTissue) {

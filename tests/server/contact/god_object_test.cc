@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <random>
@@ -75,6 +76,42 @@ TEST(GodObject, StopsInTheCornerWhereThreeFacesMeet) {
   ASSERT_TRUE(proxy.in_contact());
   EXPECT_NEAR((proxy.proxy() - Eigen::Vector3d(1.0 - kOffset, 1.0 - kOffset, 0.25)).norm(), 0.0,
               1e-9);
+}
+
+TEST(GodObject, RidingStaysOutsideBothFacesOfANarrowingCrease) {
+  // A V-shaped trough with its crease along x at the origin. A device below the crease holds
+  // the proxy in it, near the crease on one face. Then the trough narrows from 60° to 30°
+  // between its faces: riding out along that one face's normal would now carry the proxy
+  // behind the other face; the mean normal of the faces there does not.
+  auto trough = [](double opening_deg) {
+    const double h = 1.0 / std::tan(0.5 * opening_deg * M_PI / 180.0);
+    mesh::Points x(3, 6);
+    x << -1, 1, -1, 1, -1, 1,  //
+        0, 0, -1, -1, 1, 1,    //
+        0, 0, h, h, h, h;
+    return x;
+  };
+  mesh::Triangles triangles(3, 4);
+  triangles << 0, 0, 0, 0,  //
+      2, 3, 1, 5,           //
+      3, 1, 5, 4;
+  AabbTree tree(trough(60.0), triangles);
+  GodObject proxy(kOffset);
+  proxy.Reset({0.3, 0.1, 1.0});
+  for (int update = 0; update < 6; ++update) {
+    const double opening = update == 0 ? 60.0 : std::max(10.0, 60.0 - 12.5 * update);
+    const mesh::Points x = trough(opening);
+    tree.Refit(x);
+    proxy.Update(tree, {0.3, 0.0, -0.5});
+    ASSERT_TRUE(proxy.in_contact());
+    // Inside the trough: on the inner side of both faces' planes.
+    const double h = x(2, 2);
+    const Eigen::Vector3d left = Eigen::Vector3d(0.0, h, 1.0).normalized();
+    const Eigen::Vector3d right = Eigen::Vector3d(0.0, -h, 1.0).normalized();
+    EXPECT_GT(left.dot(proxy.proxy()), 0.0) << "update " << update;
+    EXPECT_GT(right.dot(proxy.proxy()), 0.0) << "update " << update;
+    EXPECT_NEAR(proxy.proxy().x(), 0.3, 1e-9);
+  }
 }
 
 TEST(GodObject, NeverEntersAClosedOrganOnRandomFastTrajectories) {
