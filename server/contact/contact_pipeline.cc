@@ -4,10 +4,17 @@
 #include <stdexcept>
 #include <string>
 
+#include "common/mesh/topology.h"
+
 namespace somasim::contact {
 
 OrganSurface::OrganSurface(const mesh::Points& positions, const mesh::Triangles& triangles)
-    : tree_(positions, triangles) {}
+    : tree_(positions, triangles) {
+  mesh::SurfaceMesh surface;
+  surface.vertices = positions;
+  surface.triangles = triangles;
+  closed_ = mesh::AnalyseSurfaceTopology(surface).watertight;
+}
 
 namespace {
 
@@ -64,7 +71,7 @@ void ToolContact::Update(const ToolPose& pose, const OrganSurface& surface,
     return;
   }
   const AabbTree& tree = surface.tree();
-  proxy_.Update(tree, pose_.tip);
+  proxy_.Update(tree, pose_.tip, surface.closed());
   grasp_.Update(shape_, pose_, tree, positions);
   if (grasp_.holding()) {
     // The jaws hold the tissue: the grasp's springs carry the force both ways.

@@ -39,9 +39,13 @@ class OrganSurface {
   // The tree follows the model's current positions (3 × num_nodes, as at construction).
   void Refit(const mesh::Points& positions) { tree_.Refit(positions); }
   const AabbTree& tree() const { return tree_; }
+  // Watertight and consistently oriented (mesh::AnalyseSurfaceTopology): it has an inside, and
+  // a tool it moves onto is pushed out (GodObject::Update).
+  bool closed() const { return closed_; }
 
  private:
   AabbTree tree_;
+  bool closed_ = false;
 };
 
 struct ContactSettings {

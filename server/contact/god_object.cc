@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <numbers>
 #include <stdexcept>
 
 namespace somasim::contact {
@@ -78,9 +79,10 @@ void GodObject::Reset(const Eigen::Vector3d& device) {
   contact_ = SurfacePoint{};
 }
 
-void GodObject::Update(const AabbTree& tree, const Eigen::Vector3d& device) {
+void GodObject::Update(const AabbTree& tree, const Eigen::Vector3d& device, bool closed) {
   if (!device.allFinite()) return;
   device_ = device;
+  if (closed && !in_contact_) ComeOutIfSwallowed(tree);
   if (in_contact_ && contact_.triangle >= 0 && contact_.triangle < tree.num_triangles()) {
     // The surface moved since the last update: the proxy rides with the point it touches.
     const Eigen::Vector3d n = TriangleNormal(tree, contact_.triangle);
@@ -178,6 +180,48 @@ void GodObject::TouchNearest(const AabbTree& tree, double reach) {
     side_ = n.dot(proxy_ - nearest.point) >= 0.0 ? 1.0 : -1.0;
     normal_ = side_ * n;
   }
+}
+
+void GodObject::ComeOutIfSwallowed(const AabbTree& tree) {
+  SurfacePoint nearest;
+  if (!tree.Nearest(proxy_, &nearest, kCaptureDepth) || nearest.distance == 0.0) return;
+  // The pseudo-normal at the nearest point: the normals of the triangles that share it, each
+  // weighted by its angle there (a face: its own normal; an edge: the two faces'; a vertex:
+  // the angle-weighted fan). Its sign against (proxy - point) is exact for a closed,
+  // consistently oriented surface (Bærentzen & Aanæs 2005).
+  const double touch = 1e-9 * (1.0 + nearest.point.cwiseAbs().maxCoeff());
+  const int32_t found =
+      std::min(tree.SphereQuery(nearest.point, touch, {around_.data(), around_.size()}),
+               static_cast<int32_t>(around_.size()));
+  const auto& x = tree.positions();
+  Eigen::Vector3d pseudo = Eigen::Vector3d::Zero();
+  for (int32_t k = 0; k < found; ++k) {
+    const int32_t t = around_[static_cast<size_t>(k)];
+    const auto tri = tree.triangles().col(t);
+    const Eigen::Vector3d n = TriangleNormal(tree, t);
+    // The angle of triangle t at the point: at a corner it touches, the corner's angle; on an
+    // edge or inside, π (the point's neighbourhood in t is a half or whole disc: any constant
+    // weight does, both faces of an edge get the same).
+    double weight = std::numbers::pi;
+    for (int c = 0; c < 3; ++c) {
+      if ((x.col(tri[c]) - nearest.point).norm() <= touch) {
+        const Eigen::Vector3d u = x.col(tri[(c + 1) % 3]) - x.col(tri[c]);
+        const Eigen::Vector3d v = x.col(tri[(c + 2) % 3]) - x.col(tri[c]);
+        weight = std::atan2(u.cross(v).norm(), u.dot(v));
+      }
+    }
+    pseudo += weight * n;
+  }
+  if (found == 0) pseudo = TriangleNormal(tree, nearest.triangle);
+  if (pseudo.dot(proxy_ - nearest.point) >= 0.0) return;  // outside
+  // Swallowed: back out to the nearest point, offset along the touched face's outward normal.
+  const Eigen::Vector3d n = TriangleNormal(tree, nearest.triangle);
+  const Eigen::Vector3d out = pseudo.norm() > 0.0 ? Eigen::Vector3d(pseudo.normalized()) : n;
+  proxy_ = nearest.point + offset_ * out;
+  in_contact_ = true;
+  contact_ = nearest;
+  side_ = 1.0;
+  normal_ = n.squaredNorm() > 0.0 ? n : out;
 }
 
 Eigen::Vector3d GodObject::DeviceForce(double tool_stiffness) const {

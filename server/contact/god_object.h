@@ -13,6 +13,8 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <array>
+#include <cstdint>
 
 #include "server/contact/aabb_tree.h"
 
@@ -28,7 +30,13 @@ class GodObject {
   void Reset(const Eigen::Vector3d& device);
   // One update against a surface whose tree is refitted to the surface's current positions.
   // `device` must be finite (a non-finite one leaves the proxy where it is).
-  void Update(const AabbTree& tree, const Eigen::Vector3d& device);
+  // `closed`: the surface is watertight with outward normals (a volume organ's boundary, a
+  // closed surface organ). Then a free proxy that the moving surface has swallowed since the
+  // last update (a breathing organ moving onto a tool held still) is found — within
+  // kCaptureDepth of the surface, by the sign of the angle-weighted pseudo-normal at its nearest
+  // surface point (Bærentzen & Aanæs 2005) — and put back outside, touching.
+  void Update(const AabbTree& tree, const Eigen::Vector3d& device, bool closed = false);
+  static constexpr double kCaptureDepth = 0.02;  // [m]
 
   bool in_contact() const { return in_contact_; }
   const Eigen::Vector3d& proxy() const { return proxy_; }    // [m]
@@ -45,6 +53,8 @@ class GodObject {
   void MoveTowardsDevice(const AabbTree& tree);
   // Records the surface point nearest to the proxy (within `reach` of it) as the contact.
   void TouchNearest(const AabbTree& tree, double reach);
+  // A free proxy inside a closed surface (see Update) goes back out, touching it.
+  void ComeOutIfSwallowed(const AabbTree& tree);
 
   double offset_;
   bool in_contact_ = false;
@@ -53,6 +63,7 @@ class GodObject {
   SurfacePoint contact_;
   Eigen::Vector3d normal_ = Eigen::Vector3d::UnitZ();
   double side_ = 1.0;  // +1: the proxy is on the front (counter-clockwise) side of its triangle
+  std::array<int32_t, 32> around_{};  // triangles at a nearest point (pseudo-normal)
 };
 
 }  // namespace somasim::contact

@@ -114,6 +114,44 @@ TEST(GodObject, RidingStaysOutsideBothFacesOfANarrowingCrease) {
   }
 }
 
+TEST(GodObject, AnOrganMovingOntoAToolHeldStillPushesItsProxyOut) {
+  // A breathing organ moves onto a tip held still: the proxy, free until then, must not end up
+  // inside. 1 mm per update, over the tip and 2 cm beyond.
+  const testing::OrganWithSurface kidney = testing::VolumeOrgan("kidney424");
+  const mesh::Points rest = kidney.volume.vertices;
+  const Eigen::Vector3d lo = rest.rowwise().minCoeff(), hi = rest.rowwise().maxCoeff();
+  const Eigen::Vector3d tip(hi.x() + 0.005, 0.5 * (lo.y() + hi.y()), 0.5 * (lo.z() + hi.z()));
+  AabbTree tree(rest, kidney.surface);
+  GodObject proxy(kOffset);
+  proxy.Reset(tip);
+  mesh::Points x = rest;
+  int touching = 0;
+  for (int update = 1; update <= 25; ++update) {
+    x = rest.colwise() + Eigen::Vector3d(0.001 * update, 0.0, 0.0);
+    tree.Refit(x);
+    proxy.Update(tree, tip, /*closed=*/true);
+    ASSERT_LT(WindingNumber(x, kidney.surface, proxy.proxy()), 0.5) << "update " << update;
+    if (proxy.in_contact()) {
+      ++touching;
+      EXPECT_GT(proxy.DeviceForce(1000.0).x(), 0.0);  // the organ pushes the hand along +x
+    }
+  }
+  EXPECT_GT(touching, 5);  // from when the surface reached the tip (the hilum is concave)
+  // The same without `closed` (an open sheet has no inside): the proxy stays where the tip is.
+  GodObject open(kOffset);
+  open.Reset(tip);
+  open.Update(tree, tip);
+  EXPECT_FALSE(open.in_contact());
+  EXPECT_EQ(open.proxy(), tip);
+  // A tip outside, next to a closed organ, stays free.
+  const Eigen::Vector3d beside =
+      Eigen::Vector3d(x.rowwise().maxCoeff()) + Eigen::Vector3d(0.002, 0, 0);
+  GodObject outside(kOffset);
+  outside.Reset(beside);
+  outside.Update(tree, beside, /*closed=*/true);
+  EXPECT_FALSE(outside.in_contact());
+}
+
 TEST(GodObject, NeverEntersAClosedOrganOnRandomFastTrajectories) {
   const testing::OrganWithSurface kidney = testing::VolumeOrgan("kidney424");
   const mesh::Points& x = kidney.volume.vertices;
@@ -127,7 +165,7 @@ TEST(GodObject, NeverEntersAClosedOrganOnRandomFastTrajectories) {
   for (int update = 0; update < 3000; ++update) {
     // Jumps anywhere in and around the organ: across it in one update, at any speed.
     const Eigen::Vector3d device = RandomPointIn(lo - margin, hi + margin, &rng);
-    proxy.Update(tree, device);
+    proxy.Update(tree, device, /*closed=*/true);
     ASSERT_LT(WindingNumber(x, kidney.surface, proxy.proxy()), 0.5) << "update " << update;
     if (proxy.in_contact()) {
       ++touching;
@@ -162,7 +200,7 @@ TEST(GodObject, RidesADeformingOrganWithoutEnteringIt) {
     tree.Refit(x);
     const Eigen::Vector3d device =
         update % 3 == 0 ? RandomPointIn(lo - margin, hi + margin, &rng) : centre;
-    proxy.Update(tree, device);
+    proxy.Update(tree, device, /*closed=*/true);
     ASSERT_LT(WindingNumber(x, kidney.surface, proxy.proxy()), 0.5) << "update " << update;
   }
 }
