@@ -222,14 +222,66 @@ void CheckMaterial(const Where& m, const Material& material, const Model& model)
   if (sum > 1.0) m.Fail("prony", "the gammas sum to more than 1 (G(0) = 1)", 0);
 }
 
-void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) {
-  if (organ.id().empty()) o.Fail("id", "is missing");
-  for (const char c : organ.id()) {
+// An organ's, rigid body's or tool's id: present, of letters, digits, '_' and '-', and unique
+// among all three (`ids` collects them).
+void CheckId(const Where& w, const std::string& id, std::set<std::string>* ids) {
+  if (id.empty()) w.Fail("id", "is missing");
+  for (const char c : id) {
     if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-')) {
-      o.Fail("id", "\"" + organ.id() + "\" may hold only letters, digits, '_' and '-'");
+      w.Fail("id", "\"" + id + "\" may hold only letters, digits, '_' and '-'");
     }
   }
-  if (!ids->insert(organ.id()).second) o.Fail("id", "\"" + organ.id() + "\" is used twice");
+  if (!ids->insert(id).second) w.Fail("id", "\"" + id + "\" is used twice");
+}
+
+// A dimension left 0 takes its default; a given one must lie in (0, max].
+void CheckDimension(const Where& w, const char* field, double value, double max) {
+  if (value == 0.0) return;
+  if (!(value > 0.0 && value <= max)) {
+    std::ostringstream message;
+    message << "must be a finite value in (0, " << max << "] m (0: the default)";
+    w.Fail(field, message.str());
+  }
+}
+
+void CheckRigidBody(const Where& r, const RigidBody& body, std::set<std::string>* ids) {
+  CheckId(r, body.id(), ids);
+  if (!body.has_sphere()) r.FailHere("needs a sphere (its shape and starting place)");
+  const Where s = r.Child("sphere", body.sphere());
+  s.Finite("center", body.sphere().center());
+  if (!(body.sphere().radius() > 0.0 && body.sphere().radius() <= 0.2)) {
+    s.Fail("radius", "must be a finite value in (0, 0.2] m");
+  }
+  if (body.density() != 0.0) r.Positive("density", body.density());
+}
+
+void CheckTool(const Where& t, const Tool& tool, std::set<std::string>* ids) {
+  CheckId(t, tool.id(), ids);
+  CheckDimension(t, "shaft_length", tool.shaft_length(), 2.0);
+  CheckDimension(t, "shaft_radius", tool.shaft_radius(), 0.05);
+  if (tool.stiffness() != 0.0) t.Positive("stiffness", tool.stiffness());
+  const double shaft = tool.shaft_length() > 0.0 ? tool.shaft_length() : 0.30;
+  switch (tool.kind_case()) {
+    case Tool::kGrasper: {
+      const Where g = t.Child("grasper", tool.grasper());
+      CheckDimension(g, "jaw_length", tool.grasper().jaw_length(), shaft);
+      CheckDimension(g, "grasp_radius", tool.grasper().grasp_radius(), 0.05);
+      break;
+    }
+    case Tool::kScalpel:
+      CheckDimension(t.Child("scalpel", tool.scalpel()), "blade_length",
+                     tool.scalpel().blade_length(), shaft);
+      break;
+    case Tool::kProbe:
+    case Tool::kCamera:
+      break;
+    case Tool::KIND_NOT_SET:
+      t.FailHere("needs a kind: probe, grasper, scalpel or camera");
+  }
+}
+
+void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) {
+  CheckId(o, organ.id(), ids);
   switch (organ.mesh_case()) {
     case Organ::kBuiltin:
       if (mesh_gen::FindBuiltinOrgan(organ.builtin()) == nullptr) {
@@ -277,10 +329,17 @@ void CheckScene(const Where& s, const Scene& scene) {
   for (int k = 0; k < scene.organ_size(); ++k) {
     CheckOrgan(s.Child("organ", scene.organ(k), k), scene.organ(k), &ids);
   }
+  const std::set<std::string> organ_ids = ids;
+  for (int k = 0; k < scene.rigid_body_size(); ++k) {
+    CheckRigidBody(s.Child("rigid_body", scene.rigid_body(k), k), scene.rigid_body(k), &ids);
+  }
+  for (int k = 0; k < scene.tool_size(); ++k) {
+    CheckTool(s.Child("tool", scene.tool(k), k), scene.tool(k), &ids);
+  }
   for (int k = 0; k < scene.load_size(); ++k) {
     const Load& load = scene.load(k);
     const Where l = s.Child("load", load, k);
-    if (ids.count(load.organ()) == 0) {
+    if (organ_ids.count(load.organ()) == 0) {
       l.Fail("organ", "\"" + load.organ() + "\" is not an organ of the scene");
     }
     CheckRegion(l.Child("region", load.region()), load.region());

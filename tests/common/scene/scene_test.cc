@@ -130,6 +130,58 @@ TEST(Scene, RefusesUnknownNamesAndReferences) {
                 "needs a box, a sphere or nodes");
 }
 
+const char* const kStone = R"(format_version: 1
+organ { id: "kidney" builtin: "kidney424" model { fem_corotational {} }
+        material { density: 1050 youngs_modulus: 20000 } }
+rigid_body {
+  id: "stone"
+  sphere { center { z: 0.02 } radius: 0.006 }
+}
+tool { id: "left" grasper { jaw_length: 0.02 } }
+tool { id: "right" probe {} stiffness: 500 }
+tool { id: "knife" scalpel {} shaft_length: 0.35 }
+tool { id: "scope" camera {} }
+)";
+
+// kStone with the first occurrence of `from` replaced by `to`.
+std::string EditStone(const std::string& from, const std::string& to) {
+  std::string text = kStone;
+  const size_t at = text.find(from);
+  EXPECT_NE(at, std::string::npos) << from;
+  return text.replace(at, from.size(), to);
+}
+
+TEST(Scene, RigidBodiesAndToolsLoadAndTheirValuesAreChecked) {
+  const Scene scene = ParseScene(kStone, "stone.scene.txtpb");
+  ASSERT_EQ(scene.rigid_body_size(), 1);
+  EXPECT_DOUBLE_EQ(scene.rigid_body(0).sphere().radius(), 0.006);
+  ASSERT_EQ(scene.tool_size(), 4);
+  EXPECT_DOUBLE_EQ(scene.tool(0).grasper().jaw_length(), 0.02);
+  EXPECT_DOUBLE_EQ(scene.tool(1).stiffness(), 500.0);
+  EXPECT_TRUE(scene.tool(3).has_camera());
+
+  ExpectRefused(EditStone("radius: 0.006", "radius: 0.3"), 6, "rigid_body[0].sphere.radius",
+                "(0, 0.2]");
+  ExpectRefused(EditStone("center { z: 0.02 }", "center { z: nan }"), 6,
+                "rigid_body[0].sphere.center", "finite");
+  ExpectRefused(EditStone("  sphere { center { z: 0.02 } radius: 0.006 }\n", "  density: 2000\n"),
+                4, "rigid_body[0]", "needs a sphere");
+  ExpectRefused(EditStone("  id: \"stone\"", "  id: \"stone\" density: -3"), 5,
+                "rigid_body[0].density", "> 0");
+  ExpectRefused(EditStone("id: \"stone\"", "id: \"kidney\""), 5, "rigid_body[0].id", "used twice");
+  ExpectRefused(EditStone("id: \"right\"", "id: \"left\""), 9, "tool[1].id", "used twice");
+  ExpectRefused(EditStone("jaw_length: 0.02", "jaw_length: 0.5"), 8, "tool[0].grasper.jaw_length",
+                "(0, 0.3]");
+  ExpectRefused(EditStone("stiffness: 500", "stiffness: -500"), 9, "tool[1].stiffness", "> 0");
+  ExpectRefused(EditStone("shaft_length: 0.35", "shaft_length: inf"), 10, "tool[2].shaft_length",
+                "finite");
+  ExpectRefused(EditStone("scope\" camera {}", "scope\""), 11, "tool[3]", "needs a kind");
+  // A load names an organ, never a tool or a rigid body.
+  ExpectRefused(
+      std::string(kStone) + "load { organ: \"stone\" region { nodes { id: 1 } } force {} }", 12,
+      "load[0].organ", "not an organ");
+}
+
 TEST(Scene, RefusesMaterialsTheModelCannotUse) {
   ExpectRefused(Edit("rayleigh_mass: 0.1", "rayleigh_mass: 0.1 neo_hookean { c10: 1 d1: 1 }"), 7,
                 "organ[0].material", "fem_hyperelastic");

@@ -7,6 +7,7 @@
 #include <filesystem>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <vector>
 
 #include "common/mesh/geometry.h"
 #include "common/mesh_gen/builtin_organs.h"
@@ -54,62 +55,91 @@ TEST(SomasimSolve, BuiltinSceneWritesVtuAndPrintsTheSpecKeys) {
   EXPECT_TRUE(std::filesystem::exists(dir + "/out/liver288_history.csv"));
 }
 
-TEST(SomasimSolve, SolvesEveryBuiltinOrgan) {
+// One test per organ and per shared mesh, so that ctest -j runs them side by side.
+std::vector<std::string> BuiltinOrganNameList() {
+  std::vector<std::string> names;
   for (const mesh_gen::BuiltinOrganSpec& spec : mesh_gen::BuiltinOrganSpecs()) {
-    // The large organs take seconds each: Release only (the sanitizer build checks the rest).
-    if (testing::kUnderSanitizer && spec.num_nodes > 1000) continue;
-    const std::string dir = testing::MakeTempDir("solve_builtin");
-    ExpectSolved(RunSolveTool("builtin:" + std::string(spec.name) + " --out " + dir),
-                 std::string(spec.name));
+    names.emplace_back(spec.name);
   }
+  return names;
 }
 
-TEST(SomasimSolve, SolvesTheSharedVolumeMeshes) {
-  // None is in metres (shared/data/meshes/README.md): liver.msh's OBJ twin says centimetres; the
-  // Armadillo and the raptor, in arbitrary units, are taken as millimetres. Those two have
-  // slivers (dihedral angles down to 0.6°) and pieces joined at single edges, which swing
-  // almost freely under their weight: a static solve needs hundreds of Newton iterations
-  // (docs/solve.md), so here they run 50 ms of dynamics; the well-formed meshes a static solve.
-  struct Case {
-    const char* file;
-    const char* unit;
-    const char* analysis;
-  };
-  const std::vector<Case> cases = {{"liver.msh", "cm", "static_solve {}"},
-                                   {"liver2.msh", "cm", "static_solve {}"},
-                                   {"msh4_cube.msh", "cm", "static_solve {}"},
-                                   {"Armadillo_Tetra_4406.vtu", "mm", "dynamic { end_time: 0.05 }"},
-                                   {"raptorTetra_8418.vtu", "mm", "dynamic { end_time: 0.05 }"}};
-  for (const Case& c : cases) {
-    mesh_io::ReadOptions read;
-    read.unit = *mesh_io::ParseUnit(c.unit);
-    const mesh_io::MeshData data = mesh_io::ReadMeshFile(testing::SharedMesh(c.file), read);
-    ASSERT_GT(data.tetrahedra.cols(), 0) << c.file;
-    // As the built-in organs' default scene: resting on the lowest 10 % of its height, under
-    // gravity, E = max(5 kPa, 20 ρ g L).
-    const mesh::BoundingBox box = mesh::ComputeBoundingBox(data.vertices);
-    const double held = box.min.z() + 0.1 * (box.max.z() - box.min.z());
-    const double e = std::max(5e3, 20.0 * 1000.0 * 9.81 * (box.max - box.min).maxCoeff());
-    const std::string dir = testing::MakeTempDir("solve_shared");
-    const std::string scene = dir + "/s.scene.txtpb";
-    testing::WriteBytes(scene, "format_version: 1\nname: \"" + std::string(c.file) +
-                                   "\"\norgan {\n  id: \"o\"\n  file: \"" +
-                                   testing::SharedMesh(c.file) + "\"\n  unit: \"" + c.unit +
-                                   "\"\n  model { fem_corotational {} dt: 0.005 }\n"
-                                   "  material { density: 1000 youngs_modulus: " +
-                                   std::to_string(e) +
-                                   " poisson_ratio: 0.45 rayleigh_mass: 10 }\n"
-                                   "  fixed { box { min { x: -10 y: -10 z: -10 } max { x: 10 "
-                                   "y: 10 z: " +
-                                   std::to_string(held) + " } } }\n}\ngravity { z: -9.81 }\n" +
-                                   "analysis { " + c.analysis + " }\n");
-    const testing::ToolRun run = RunSolveTool(scene + " --out " + dir + "/out");
-    ExpectSolved(run, c.file);
-    const nlohmann::json j = JsonOf(run);
-    EXPECT_EQ(j["organs"][0]["nodes"], data.vertices.cols()) << c.file;
-    EXPECT_TRUE(std::filesystem::exists(dir + "/out/o_0.vtu")) << c.file;
-  }
+class SolvesBuiltinOrgan : public ::testing::TestWithParam<std::string> {};
+
+TEST_P(SolvesBuiltinOrgan, WithItsDefaultScene) {
+  const mesh_gen::BuiltinOrganSpec* spec = mesh_gen::FindBuiltinOrgan(GetParam());
+  ASSERT_NE(spec, nullptr);
+  // The large organs take seconds each: Release only (the sanitizer build checks the rest).
+  if (testing::kUnderSanitizer && spec->num_nodes > 1000) GTEST_SKIP() << "large organ";
+  const std::string dir = testing::MakeTempDir("solve_builtin_" + GetParam());
+  ExpectSolved(RunSolveTool("builtin:" + GetParam() + " --out " + dir), GetParam());
 }
+
+INSTANTIATE_TEST_SUITE_P(SomasimSolve, SolvesBuiltinOrgan,
+                         ::testing::ValuesIn(BuiltinOrganNameList()),
+                         [](const ::testing::TestParamInfo<std::string>& organ) {
+                           return organ.param;
+                         });
+
+// None is in metres (shared/data/meshes/README.md): liver.msh's OBJ twin says centimetres; the
+// Armadillo and the raptor, in arbitrary units, are taken as millimetres. Those two have
+// slivers (dihedral angles down to 0.6°) and pieces joined at single edges, which swing almost
+// freely under their weight: a static solve needs hundreds of Newton iterations
+// (docs/solve.md), so here they run 50 ms of dynamics; the well-formed meshes a static solve.
+struct SharedMeshCase {
+  const char* file;
+  const char* unit;
+  const char* analysis;
+};
+
+class SolvesSharedVolumeMesh : public ::testing::TestWithParam<SharedMeshCase> {};
+
+TEST_P(SolvesSharedVolumeMesh, RestingUnderItsWeight) {
+  const SharedMeshCase& c = GetParam();
+  mesh_io::ReadOptions read;
+  read.unit = *mesh_io::ParseUnit(c.unit);
+  const mesh_io::MeshData data = mesh_io::ReadMeshFile(testing::SharedMesh(c.file), read);
+  ASSERT_GT(data.tetrahedra.cols(), 0) << c.file;
+  // As the built-in organs' default scene: resting on the lowest 10 % of its height, under
+  // gravity, E = max(5 kPa, 20 ρ g L).
+  const mesh::BoundingBox box = mesh::ComputeBoundingBox(data.vertices);
+  const double held = box.min.z() + 0.1 * (box.max.z() - box.min.z());
+  const double e = std::max(5e3, 20.0 * 1000.0 * 9.81 * (box.max - box.min).maxCoeff());
+  const std::string dir = testing::MakeTempDir("solve_shared");
+  const std::string scene = dir + "/s.scene.txtpb";
+  testing::WriteBytes(scene, "format_version: 1\nname: \"" + std::string(c.file) +
+                                 "\"\norgan {\n  id: \"o\"\n  file: \"" +
+                                 testing::SharedMesh(c.file) + "\"\n  unit: \"" + c.unit +
+                                 "\"\n  model { fem_corotational {} dt: 0.005 }\n"
+                                 "  material { density: 1000 youngs_modulus: " +
+                                 std::to_string(e) +
+                                 " poisson_ratio: 0.45 rayleigh_mass: 10 }\n"
+                                 "  fixed { box { min { x: -10 y: -10 z: -10 } max { x: 10 "
+                                 "y: 10 z: " +
+                                 std::to_string(held) + " } } }\n}\ngravity { z: -9.81 }\n" +
+                                 "analysis { " + c.analysis + " }\n");
+  const testing::ToolRun run = RunSolveTool(scene + " --out " + dir + "/out");
+  ExpectSolved(run, c.file);
+  const nlohmann::json j = JsonOf(run);
+  EXPECT_EQ(j["organs"][0]["nodes"], data.vertices.cols()) << c.file;
+  EXPECT_TRUE(std::filesystem::exists(dir + "/out/o_0.vtu")) << c.file;
+}
+
+INSTANTIATE_TEST_SUITE_P(SomasimSolve, SolvesSharedVolumeMesh,
+                         ::testing::Values(SharedMeshCase{"liver.msh", "cm", "static_solve {}"},
+                                           SharedMeshCase{"liver2.msh", "cm", "static_solve {}"},
+                                           SharedMeshCase{"msh4_cube.msh", "cm", "static_solve {}"},
+                                           SharedMeshCase{"Armadillo_Tetra_4406.vtu", "mm",
+                                                          "dynamic { end_time: 0.05 }"},
+                                           SharedMeshCase{"raptorTetra_8418.vtu", "mm",
+                                                          "dynamic { end_time: 0.05 }"}),
+                         [](const ::testing::TestParamInfo<SharedMeshCase>& mesh) {
+                           std::string name = mesh.param.file;
+                           std::replace_if(
+                               name.begin(), name.end(), [](char ch) { return !std::isalnum(ch); },
+                               '_');
+                           return name;
+                         });
 
 TEST(SomasimSolve, ExitCodesNameTheFault) {
   const std::string dir = testing::MakeTempDir("solve_tool_faults");
