@@ -276,6 +276,7 @@ void AabbTree::Refit(const mesh::Points& positions) {
                                 std::to_string(positions_.cols()));
   }
   external_ = &positions;  // no copy (see the header's lifetime rule)
+  ++refits_;
   if (nodes_.empty()) return;
   // Leaves: the box of their distinct vertices in double, then rounded outwards once.
   const double* x = positions.data();

@@ -87,6 +87,9 @@ class AabbTree {
   // made at build, or the matrix the last Refit was given (not copied: copying 3 × N doubles was
   // ~10 % of Refit).
   const mesh::Points& positions() const { return external_ != nullptr ? *external_ : positions_; }
+  // How many times the tree has been refitted: a caller that saw the same count last time
+  // knows the surface has not moved since (GodObject skips its swallowed-proxy check then).
+  uint64_t refits() const { return refits_; }
   const mesh::Triangles& triangles() const { return triangles_; }
 
   // Traversal stacks hold this many nodes; the build guarantees depth < kMaxDepth (midpoint
@@ -127,6 +130,7 @@ class AabbTree {
   std::vector<int32_t> order_vertices_;  // 3 × T: the vertex indices of order_'s triangles
   double scale_ = 0.0;                   // max |coordinate| of the root box [m], for margins
   int max_depth_ = 0;
+  uint64_t refits_ = 0;
 };
 
 // For tests: false makes Refit take its portable (SSE2 / scalar) leaf pass even where AVX2 is

@@ -5,6 +5,8 @@
 #include <numbers>
 #include <stdexcept>
 
+#include "server/contact/triangle_queries.h"
+
 namespace somasim::contact {
 namespace {
 
@@ -82,7 +84,10 @@ void GodObject::Reset(const Eigen::Vector3d& device) {
 void GodObject::Update(const AabbTree& tree, const Eigen::Vector3d& device, bool closed) {
   if (!device.allFinite()) return;
   device_ = device;
-  if (closed && !in_contact_) ComeOutIfSwallowed(tree);
+  const bool moved = &tree != last_tree_ || tree.refits() != last_refits_;
+  last_tree_ = &tree;
+  last_refits_ = tree.refits();
+  if (closed && moved && !in_contact_) ComeOutIfSwallowed(tree);
   if (in_contact_ && contact_.triangle >= 0 && contact_.triangle < tree.num_triangles()) {
     // The surface moved since the last update: the proxy rides with the point it touches.
     const Eigen::Vector3d n = TriangleNormal(tree, contact_.triangle);
@@ -127,12 +132,13 @@ void GodObject::MoveTowardsDevice(const AabbTree& tree) {
   // Each pass moves the proxy along one checked segment. A slide along a plane may leave the
   // surface where it curves away (a convex region): the proxy then aims at the device again and
   // meets the surface further on, converging on the device's nearest reachable surface point.
-  constexpr int kMaxMoves = 16;
+  constexpr int kMaxMoves = 8;
   Plane planes[3];
   int active = 0;
   bool touched = false;
   bool on_surface = false;  // the last move ended at a crossing (not in the air)
   Eigen::Vector3d last_hit = proxy_;
+  int32_t last_triangle = -1;
   Eigen::Vector3d goal = device_;
   for (int move = 0; move < kMaxMoves; ++move) {
     if ((goal - proxy_).squaredNorm() <= 1e-24) break;  // within 1e-12 m: arrived
@@ -148,6 +154,7 @@ void GodObject::MoveTowardsDevice(const AabbTree& tree) {
     touched = true;
     on_surface = true;
     last_hit = hit.point;
+    last_triangle = hit.triangle;
     // Slide: the next goal is the device projected onto the planes met so far.
     if (active == 3) break;  // a corner: the proxy stays
     planes[active++] = Plane{hit.point, n};
@@ -158,18 +165,31 @@ void GodObject::MoveTowardsDevice(const AabbTree& tree) {
     // Out of moves in the air above a curved surface: settle onto it towards the device.
     SegmentHit hit;
     Eigen::Vector3d n;
-    if (MoveUntilHit(tree, device_, offset_, &proxy_, &hit, &n)) last_hit = hit.point;
+    if (MoveUntilHit(tree, device_, offset_, &proxy_, &hit, &n)) {
+      last_hit = hit.point;
+      last_triangle = hit.triangle;
+    }
   }
   if (touched && (device_ - proxy_).squaredNorm() > 1e-24) {
-    TouchNearest(tree, (proxy_ - last_hit).norm() + 2.0 * offset_);
+    TouchNearest(tree, last_triangle, (proxy_ - last_hit).norm() + 2.0 * offset_);
   } else {
     in_contact_ = false;
   }
 }
 
-void GodObject::TouchNearest(const AabbTree& tree, double reach) {
+void GodObject::TouchNearest(const AabbTree& tree, int32_t last_triangle, double reach) {
   SurfacePoint nearest;
-  if (!tree.Nearest(proxy_, &nearest, reach)) {
+  // The triangle the proxy last stopped at is nearly always the nearest (the proxy stopped
+  // `offset` from it); only near its edge may a neighbour be nearer, and then the tree is asked.
+  const auto& x = tree.positions();
+  const auto tri = tree.triangles().col(last_triangle);
+  nearest.triangle = last_triangle;
+  nearest.barycentric =
+      ClosestPointBarycentric(proxy_, x.col(tri[0]), x.col(tri[1]), x.col(tri[2]));
+  nearest.point = nearest.barycentric[0] * x.col(tri[0]) + nearest.barycentric[1] * x.col(tri[1]) +
+                  nearest.barycentric[2] * x.col(tri[2]);
+  nearest.distance = (proxy_ - nearest.point).norm();
+  if (nearest.distance > offset_ * (1.0 + 1e-6) && !tree.Nearest(proxy_, &nearest, reach)) {
     in_contact_ = false;
     return;
   }

@@ -34,9 +34,12 @@ class GodObject {
   // closed surface organ). Then a free proxy that the moving surface has swallowed since the
   // last update (a breathing organ moving onto a tool held still) is found — within
   // kCaptureDepth of the surface, by the sign of the angle-weighted pseudo-normal at its nearest
-  // surface point (Bærentzen & Aanæs 2005) — and put back outside, touching.
+  // surface point (Bærentzen & Aanæs 2005) — and put back outside, touching. (Only when the
+  // tree was refitted since the last update: a surface that did not move swallows nothing.)
   void Update(const AabbTree& tree, const Eigen::Vector3d& device, bool closed = false);
-  static constexpr double kCaptureDepth = 0.02;  // [m]
+  // [m] how far a surface may move past a free tool between two updates and still push it
+  // out: 5 mm, 0.5 m/s at a 100 Hz physics step (tissue moves far slower).
+  static constexpr double kCaptureDepth = 0.005;
 
   bool in_contact() const { return in_contact_; }
   const Eigen::Vector3d& proxy() const { return proxy_; }    // [m]
@@ -51,8 +54,9 @@ class GodObject {
  private:
   // Moves the proxy from proxy_ towards device_, sliding on the planes it meets.
   void MoveTowardsDevice(const AabbTree& tree);
-  // Records the surface point nearest to the proxy (within `reach` of it) as the contact.
-  void TouchNearest(const AabbTree& tree, double reach);
+  // Records the surface point nearest to the proxy (within `reach` of it) as the contact;
+  // `last_triangle` is the triangle the proxy last stopped at.
+  void TouchNearest(const AabbTree& tree, int32_t last_triangle, double reach);
   // A free proxy inside a closed surface (see Update) goes back out, touching it.
   void ComeOutIfSwallowed(const AabbTree& tree);
 
@@ -63,7 +67,9 @@ class GodObject {
   SurfacePoint contact_;
   Eigen::Vector3d normal_ = Eigen::Vector3d::UnitZ();
   double side_ = 1.0;  // +1: the proxy is on the front (counter-clockwise) side of its triangle
-  std::array<int32_t, 32> around_{};  // triangles at a nearest point (pseudo-normal)
+  std::array<int32_t, 32> around_{};     // triangles at a nearest point (pseudo-normal)
+  const AabbTree* last_tree_ = nullptr;  // the tree and its refit count at the last update
+  uint64_t last_refits_ = 0;
 };
 
 }  // namespace somasim::contact

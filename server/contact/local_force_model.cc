@@ -42,6 +42,7 @@ const char* LocalForceModelError(const LocalForceModel& model) {
   if (!model.grasp_anchor.allFinite()) return "grasp_anchor is not finite";
   if (!model.grasp_stiffness.allFinite()) return "grasp_stiffness is not finite";
   if (!model.tissue_stiffness.allFinite()) return "tissue_stiffness is not finite";
+  if (!model.bias_force.allFinite()) return "bias_force is not finite";
   if (!Finite(model.damping)) return "damping is not finite";
   if (!Finite(model.force_limit)) return "force_limit is not finite";
   if (model.in_contact && !(std::abs(model.normal.norm() - 1.0) <= 1e-6)) {
@@ -71,7 +72,8 @@ ForceSample EvaluateLocalForceModel(const LocalForceModel& model, const Eigen::V
   // wrong one can only give a wrong force, which the clamp below still bounds.
   const double sum = x.sum() + v.sum() + model.contact_point.sum() + model.normal.sum() +
                      model.grasp_anchor.sum() + model.grasp_stiffness.sum() +
-                     model.contact_stiffness + model.damping + model.force_limit;
+                     model.bias_force.sum() + model.contact_stiffness + model.damping +
+                     model.force_limit;
   // A limit below the smallest normal double (a subnormal) is treated as no limit at all: the
   // clamp's rescaling could not keep its digits there.
   const bool ok = Finite(sum) && model.force_limit >= std::numeric_limits<double>::min() &&
@@ -80,7 +82,7 @@ ForceSample EvaluateLocalForceModel(const LocalForceModel& model, const Eigen::V
     sample.invalid = true;
     return sample;
   }
-  Vector3d f = Vector3d::Zero();
+  Vector3d f = model.bias_force;
   if (model.in_contact) {
     // God-object proxy on the unloaded plane (seed 002 eq. 12) with the tool and the tissue in
     // series: f = k_n d n for a penetration d > 0. Damping acts along the normal only (the proxy
@@ -123,8 +125,8 @@ LocalForceModel MakeLocalForceModel(const ContactForModel& contact, uint64_t seq
   const double kt = contact.tool_stiffness;
   if (!(kt > 0.0) || !Finite(kt)) Refuse("tool_stiffness must be > 0 and finite");
   if (!contact.proxy.allFinite() || !contact.normal.allFinite() || !contact.device.allFinite() ||
-      !contact.grasp_force.allFinite()) {
-    Refuse("proxy, normal, device and grasp_force must be finite");
+      !contact.grasp_force.allFinite() || !contact.bias_force.allFinite()) {
+    Refuse("proxy, normal, device, grasp_force and bias_force must be finite");
   }
   if (!contact.tissue_compliance.allFinite()) Refuse("tissue_compliance must be finite");
   if (!(contact.damping >= 0.0) || !Finite(contact.damping)) Refuse("damping must be >= 0");
@@ -152,6 +154,7 @@ LocalForceModel MakeLocalForceModel(const ContactForModel& contact, uint64_t seq
   model.sim_time = sim_time;
   model.damping = contact.damping;
   model.force_limit = contact.force_limit;
+  model.bias_force = contact.bias_force;
   // Tissue stiffness C⁻¹ for display; a held (C = 0) direction shows as 1e12 N/m, "rigid".
   const Vector3d k_values = c_clipped.cwiseMax(1e-12).cwiseInverse();
   model.tissue_stiffness = basis * k_values.asDiagonal() * basis.transpose();

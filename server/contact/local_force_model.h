@@ -41,6 +41,10 @@ struct LocalForceModel {
   Eigen::Vector3d grasp_anchor = Eigen::Vector3d::Zero();     // [m] device position of zero force
   Eigen::Matrix3d grasp_stiffness = Eigen::Matrix3d::Zero();  // K_g [N/m], symmetric PSD
 
+  // A force [N] the same at every device position: what a rigid body held in the jaws weighs
+  // (it moves with the hand, so it adds no stiffness; rigid_body.h). Zero otherwise.
+  Eigen::Vector3d bias_force = Eigen::Vector3d::Zero();
+
   // The tissue's local stiffness K_tissue [N/m] at the contact (3 × 3 symmetric PSD): carried
   // for the viewer's display and the recording; the evaluation uses k_n and K_g, which include it.
   Eigen::Matrix3d tissue_stiffness = Eigen::Matrix3d::Zero();
@@ -80,6 +84,8 @@ struct ContactForModel {
   double tool_stiffness = 1000.0;  // K_t [N/m], > 0
   // The tissue's local compliance C [m/N] (3 × 3 symmetric PSD) at the contact or grasp.
   Eigen::Matrix3d tissue_compliance = Eigen::Matrix3d::Zero();
+  // A held rigid body's force on the tool [N] (its weight when carried), passed on as is.
+  Eigen::Vector3d bias_force = Eigen::Vector3d::Zero();
   double damping = 0.0;
   double force_limit = 10.0;
 };

@@ -210,6 +210,7 @@ std::vector<double*> Doubles(LocalForceModel* m) {
     d.push_back(&m->contact_point[i]);
     d.push_back(&m->normal[i]);
     d.push_back(&m->grasp_anchor[i]);
+    d.push_back(&m->bias_force[i]);
   }
   for (int i = 0; i < 9; ++i) {
     d.push_back(m->grasp_stiffness.data() + i);
@@ -262,6 +263,30 @@ TEST(LocalForceModel, NonFiniteModelOrDeviceStateGivesZeroForceFlaggedInvalid) {
       EXPECT_EQ(EvaluateLocalForceModel(good, x, bv).force, Vector3d::Zero());
     }
   }
+}
+
+// A rigid body held in the jaws weighs on the hand wherever the hand goes: the bias force is
+// added at every position, passed on by MakeLocalForceModel, and clamped with the rest.
+TEST(LocalForceModel, ABiasForceIsAddedEverywhereAndClampedWithTheRest) {
+  ContactForModel carried;
+  carried.device = Vector3d(0.0, 0.0, 0.1);
+  carried.bias_force = Vector3d(0.0, 0.0, -0.0177);  // a 1.8 g stone
+  const LocalForceModel model = MakeLocalForceModel(carried, 1, 0.0);
+  EXPECT_EQ(LocalForceModelError(model), nullptr);
+  for (const Vector3d& x : {Vector3d(0.0, 0.0, 0.1), Vector3d(0.3, -0.2, 0.5)}) {
+    const ForceSample at = EvaluateLocalForceModel(model, x, Vector3d::Zero());
+    EXPECT_FALSE(at.invalid);
+    EXPECT_EQ(at.force, carried.bias_force);
+  }
+  LocalForceModel heavy = model;
+  heavy.bias_force = Vector3d(0.0, 0.0, -50.0);
+  const ForceSample s = EvaluateLocalForceModel(heavy, Vector3d::Zero(), Vector3d::Zero());
+  EXPECT_TRUE(s.clamped);
+  EXPECT_NEAR(s.force.norm(), heavy.force_limit, 1e-12);
+  carried.bias_force.x() = kNaN;
+  EXPECT_THROW(MakeLocalForceModel(carried, 2, 0.0), std::invalid_argument);
+  heavy.bias_force.y() = kInf;
+  EXPECT_NE(std::string(LocalForceModelError(heavy)).find("bias_force"), std::string::npos);
 }
 
 // Models of random bits in every field (NaNs, infinities, subnormals, 1e300s): the force is

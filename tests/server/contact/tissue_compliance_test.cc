@@ -27,6 +27,7 @@
 #include "server/models/molecular_model.h"
 #include "server/models/position_based_model.h"
 #include "tests/support/allocation_counter.h"
+#include "tests/support/sanitizer.h"
 
 namespace somasim::contact {
 namespace {
@@ -156,8 +157,10 @@ TEST_P(FemAcceptance, LocalModelForceMatchesStaticSolveForSmallDisplacements) {
   const auto model = FemModel::FromTetMesh(volume, Material(fc.kind, fc.liver));
   const std::vector<int32_t> held = LowestNodes(volume.vertices);
   FemCompliance fem(*model, held);
-  const std::vector<Probe> probes = SurfaceProbes(volume, held, 37);
-  ASSERT_GE(probes.size(), 6u);
+  // Every 37th surface node (every 100th under the sanitizers: static solves are slow there).
+  const std::vector<Probe> probes =
+      SurfaceProbes(volume, held, somasim::testing::kUnderSanitizer ? 100 : 37);
+  ASSERT_GE(probes.size(), somasim::testing::kUnderSanitizer ? 2u : 6u);
   const double tolerance = fc.kind == FemKind::kLinear ? 1e-6 : 0.1;
   std::mt19937 rng(7);
   const auto rest_state = model->MakeState();
@@ -228,8 +231,9 @@ TEST(FemCompliance, CorotationalCompliancesFollowALargeRigidRotation) {
   turned_state->positions = turned;
   std::mt19937 rng(11);
   double worst = 0.0;
-  const std::vector<Probe> probes = SurfaceProbes(volume, held, 97);
-  ASSERT_GE(probes.size(), 3u);
+  const std::vector<Probe> probes =
+      SurfaceProbes(volume, held, somasim::testing::kUnderSanitizer ? 150 : 97);
+  ASSERT_GE(probes.size(), 2u);
   for (const Probe& probe : probes) {
     const Matrix3d c0 = fem.RestAtNode(probe.node);
     const Matrix3d c = fem.AtNode(*turned_state, probe.node);
