@@ -4,19 +4,9 @@
 #include <cmath>
 #include <stdexcept>
 
+#include "server/contact/triangle_queries.h"
+
 namespace somasim::contact {
-namespace {
-
-double PointSegmentDistance(const Eigen::Vector3d& x, const Eigen::Vector3d& p,
-                            const Eigen::Vector3d& q) {
-  const Eigen::Vector3d d = q - p;
-  const double length2 = d.squaredNorm();
-  const double s = length2 > 0.0 ? std::clamp((x - p).dot(d) / length2, 0.0, 1.0) : 0.0;
-  return (x - (p + s * d)).norm();
-}
-
-}  // namespace
-
 Grasp::Grasp(const GraspSettings& settings) : settings_(settings) {
   if (!(settings.close_below >= 0.0 && settings.close_below < settings.open_above &&
         settings.open_above <= 1.0)) {
@@ -63,7 +53,8 @@ void Grasp::Update(const ToolShape& shape, const ToolPose& pose, const AabbTree&
       const auto tri = tree.triangles().col(candidate_triangles_[static_cast<size_t>(c)]);
       for (int corner = 0; corner < 3; ++corner) {
         const int32_t node = tri[corner];
-        const double distance = PointSegmentDistance(positions.col(node), p, q);
+        const double distance =
+            (positions.col(node) - ClosestPointOnSegment(positions.col(node), p, q)).norm();
         if (distance > shape.grasp_radius) continue;
         bool seen = false;
         for (int32_t h = 0; h < num_held_ && !seen; ++h) {

@@ -24,15 +24,6 @@ void RequirePositive(const char* name, double value, double max = 1e300) {
   }
 }
 
-// The point of segment pq nearest to c.
-Eigen::Vector3d NearestOnSegment(const Eigen::Vector3d& c, const Eigen::Vector3d& p,
-                                 const Eigen::Vector3d& q) {
-  const Eigen::Vector3d d = q - p;
-  const double length2 = d.squaredNorm();
-  const double s = length2 > 0.0 ? std::clamp((c - p).dot(d) / length2, 0.0, 1.0) : 0.0;
-  return p + s * d;
-}
-
 }  // namespace
 
 RigidSphere::RigidSphere(const RigidSphereSettings& settings, const Eigen::Vector3d& position)
@@ -107,8 +98,8 @@ void RigidSphere::UpdateTool(const ToolShape& shape, const ToolPose& pose) {
     if (!jaws_closed_) grasped_ = false;
     if (jaws_closed_ && !was_closed) {
       const Eigen::Vector3d jaw_end = PointOnShaft(pose, shape.jaw_length);
-      const double gap =
-          (position_ - NearestOnSegment(position_, pose.tip, jaw_end)).norm() - settings_.radius;
+      const double gap = (position_ - ClosestPointOnSegment(position_, pose.tip, jaw_end)).norm() -
+                         settings_.radius;
       if (gap <= shape.grasp_radius) {
         grasped_ = true;
         grasp_offset_ = q.inverse() * (position_ - pose.tip);
@@ -126,7 +117,7 @@ void RigidSphere::UpdateTool(const ToolShape& shape, const ToolPose& pose) {
     // radius of the centre (continuous: a fast tip cannot pass through the sphere unnoticed).
     const Eigen::Vector3d from =
         last_tip_.allFinite() && last_tip_.x() < 1e299 ? last_tip_ : pose.tip;
-    const Eigen::Vector3d nearest = NearestOnSegment(position_, from, pose.tip);
+    const Eigen::Vector3d nearest = ClosestPointOnSegment(position_, from, pose.tip);
     Eigen::Vector3d away = position_ - nearest;
     const double d = away.norm();
     if (d < settings_.radius) {

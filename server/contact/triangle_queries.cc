@@ -297,4 +297,12 @@ double SegmentTriangleDistanceSquared(const Vector3d& p, const Vector3d& q, cons
   return PreparedSegment(p, q).DistanceSquared(a, b, c, s, barycentric);
 }
 
+Eigen::Vector3d ClosestPointOnSegment(const Eigen::Vector3d& x, const Eigen::Vector3d& p,
+                                      const Eigen::Vector3d& q) {
+  const Eigen::Vector3d d = q - p;
+  const double length2 = d.squaredNorm();
+  const double s = length2 > 0.0 ? std::clamp((x - p).dot(d) / length2, 0.0, 1.0) : 0.0;
+  return p + s * d;
+}
+
 }  // namespace somasim::contact

@@ -6,6 +6,10 @@
 
 namespace somasim::contact {
 
+// The point of segment pq nearest to x (p when the segment has no length).
+Eigen::Vector3d ClosestPointOnSegment(const Eigen::Vector3d& x, const Eigen::Vector3d& p,
+                                      const Eigen::Vector3d& q);
+
 // The point of triangle (a, b, c) nearest to p, as barycentric weights (w_a, w_b, w_c), each in
 // [0, 1], summing to 1 (Ericson, Real-Time Collision Detection §5.1.5). Degenerate triangles
 // (zero area, or sin of the angle at a below 1e-10) give the nearest point of their three edges

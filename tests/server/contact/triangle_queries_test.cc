@@ -373,3 +373,18 @@ TEST(TriangleQueries, SegmentDistanceAnalyticCases) {
 
 }  // namespace
 }  // namespace somasim::contact
+
+namespace somasim::contact {
+namespace {
+
+TEST(TriangleQueries, ClosestPointOnSegmentClampsToItsEnds) {
+  const Eigen::Vector3d p(0.0, 0.0, 0.0), q(2.0, 0.0, 0.0);
+  EXPECT_EQ(ClosestPointOnSegment(Eigen::Vector3d(0.5, 1.0, -3.0), p, q),
+            Eigen::Vector3d(0.5, 0.0, 0.0));
+  EXPECT_EQ(ClosestPointOnSegment(Eigen::Vector3d(-1.0, 1.0, 0.0), p, q), p);
+  EXPECT_EQ(ClosestPointOnSegment(Eigen::Vector3d(5.0, -1.0, 0.0), p, q), q);
+  EXPECT_EQ(ClosestPointOnSegment(Eigen::Vector3d(5.0, -1.0, 0.0), p, p), p);  // no length
+}
+
+}  // namespace
+}  // namespace somasim::contact
