@@ -61,10 +61,8 @@ struct ToolPose {
   Vector3d shaft;     // [m], 3 cm back from the tip
 };
 
-// Poses around random surface vertices: the tip from 1 mm inside to 3 mm outside along the
-// vertex normal, moved up to 3 mm since the last step, the shaft tilted up to ~70° from the
-// normal (coming from outside). About half touch the surface.
-std::vector<ToolPose> RandomPoses(const mesh::SurfaceMesh& surface, int count) {
+// Area-weighted vertex normals (not normalised), 3 × num_vertices.
+mesh::Points VertexNormals(const mesh::SurfaceMesh& surface) {
   mesh::Points normals = mesh::Points::Zero(3, surface.vertices.cols());
   for (Eigen::Index j = 0; j < surface.triangles.cols(); ++j) {
     const Vector3d a = surface.vertices.col(surface.triangles(0, j));
@@ -72,6 +70,14 @@ std::vector<ToolPose> RandomPoses(const mesh::SurfaceMesh& surface, int count) {
                            .cross(surface.vertices.col(surface.triangles(2, j)) - a);
     for (int k = 0; k < 3; ++k) normals.col(surface.triangles(k, j)) += n;
   }
+  return normals;
+}
+
+// Poses around random surface vertices: the tip from 1 mm inside to 3 mm outside along the
+// vertex normal, moved up to 3 mm since the last step, the shaft tilted up to ~70° from the
+// normal (coming from outside). About half touch the surface.
+std::vector<ToolPose> RandomPoses(const mesh::SurfaceMesh& surface, int count) {
+  const mesh::Points normals = VertexNormals(surface);
   std::mt19937 rng(42);
   std::uniform_int_distribution<Eigen::Index> vertex(0, surface.vertices.cols() - 1);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
@@ -115,13 +121,7 @@ void BM_ShaftQuery(benchmark::State& bench, const std::string& organ) {
 // 3 mm outside to 2 mm inside in 5 steps, then slides 1 mm per step in a random tangent direction
 // (the god-object slides over the surface), then the next stroke starts elsewhere.
 std::vector<Vector3d> Strokes(const mesh::SurfaceMesh& surface, int count) {
-  mesh::Points normals = mesh::Points::Zero(3, surface.vertices.cols());
-  for (Eigen::Index j = 0; j < surface.triangles.cols(); ++j) {
-    const Vector3d a = surface.vertices.col(surface.triangles(0, j));
-    const Vector3d n = (surface.vertices.col(surface.triangles(1, j)) - a)
-                           .cross(surface.vertices.col(surface.triangles(2, j)) - a);
-    for (int k = 0; k < 3; ++k) normals.col(surface.triangles(k, j)) += n;
-  }
+  const mesh::Points normals = VertexNormals(surface);
   std::mt19937 rng(7);
   std::uniform_int_distribution<Eigen::Index> vertex(0, surface.vertices.cols() - 1);
   std::normal_distribution<double> gauss;
