@@ -1,0 +1,45 @@
+// somasim-server (SPEC §1, issue 7): runs a session's physics on a paced physics thread and
+// publishes it over Cyclone DDS in the session's partition — the description and topologies
+// (transient-local, for late joiners), mesh frames at 60 Hz as keyframes and deltas, a local
+// force model per tool after every physics step, events, a heartbeat and metrics — and applies
+// the tool and instructor commands it receives. Publishing never blocks the physics: frames,
+// heartbeat, events and metrics go out from a publisher thread that takes the physics's
+// snapshots through lock-free buffers; the force models are best-effort writes.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace somasim::server {
+
+// Exit codes (also in --help).
+inline constexpr int kExitOk = 0;
+inline constexpr int kExitUsage = 2;
+inline constexpr int kExitBadScene = 3;
+inline constexpr int kExitIo = 4;
+inline constexpr int kExitDds = 5;
+inline constexpr int kExitBug = 70;
+
+struct ServerOptions {
+  std::string scene = "builtin:liver";  // a .scene.txtpb file or builtin:NAME
+  std::string session = "default";      // the DDS partition
+  bool headless = true;                  // the server never opens a window (accepted for clarity)
+  double duration = 0.0;                 // [s] of session time; 0 = until SIGINT/SIGTERM
+  uint32_t domain = 0;                   // DDS domain id
+  std::string dds_config;                // Cyclone XML file; "" = CYCLONEDDS_URI or defaults
+  double frame_rate = 60.0;              // [Hz] mesh frames
+  uint32_t keyframe_interval = 30;       // a keyframe every this many frames (0.5 s at 60 Hz)
+  bool realtime = true;                  // pace session time to the wall clock
+  std::string report;                    // JSON report written at the end ("" = none)
+  // At the end, each organ's last published frame: DIR/<organ>.f32 (3 × num_nodes float32, the
+  // exact values a subscriber holds) and DIR/<organ>.frame (its frame number, text).
+  std::string dump_final;
+  int rt_priority = 0;                   // SCHED_FIFO priority of the physics thread; 0 = normal
+  bool verbose = false;
+};
+
+// The whole program: parses argv (--help, --version), runs, returns the exit code.
+int ServerMain(int argc, char** argv);
+
+}  // namespace somasim::server

@@ -1,0 +1,163 @@
+// A running session's physics (SPEC §1, §5): every organ of a scene on its tissue model, the
+// scene's tools with their contact, grasp and local force model, and its rigid bodies, advanced
+// tick by tick. Pure: no DDS, no I/O, no logging, no clock — the server application
+// (server/app/) feeds it tool commands and publishes what it produces. Built at start-up (which
+// allocates); Step allocates nothing.
+//
+// Time: the session ticks at the smallest model step of its organs; an organ with a longer step
+// advances when its own time falls behind the session's (organs at 1 ms and 10 ms coexist).
+// Tools act on every organ: one contact (god-object proxy and grasp) per tool and organ. The
+// local force model of a tool comes from the organ it grasps, else the one it touches (the
+// first in the scene's order), else says "no contact".
+// Rigid bodies (spheres) lie in the organ whose bounding box holds their centre at start-up (the
+// nearest organ otherwise) and meet the tool whose tip is nearest to them.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "common/scene/scene.h"
+#include "server/contact/contact_pipeline.h"
+#include "server/contact/local_force_model.h"
+#include "server/contact/rigid_body.h"
+#include "server/solve/organ_builder.h"
+
+namespace somasim::server {
+
+// What happened during a tick, for the session's event stream (idl/session.idl SessionEvent
+// kinds). Fixed size: the physics allocates nothing to report it.
+struct SessionEventRecord {
+  enum class Kind : uint32_t {
+    kGrasp = 3,
+    kRelease = 4,
+    kContactBegins = 5,
+    kContactEnds = 6,
+    kStepRejected = 7,
+    kForceModelRefused = 15,  // the contact gave a model MakeLocalForceModel refused
+  };
+  Kind kind = Kind::kGrasp;
+  double sim_time = 0.0;  // [s]
+  int32_t organ = -1;     // index into the session's organs, or -1
+  int32_t tool = -1;      // index into the session's tools, or -1
+  int32_t detail = 0;     // kGrasp: nodes held; kStepRejected: models::StepStatus
+};
+
+// What a tool command sets (server/app/ checks the sample before it gets here).
+struct ToolCommandInput {
+  contact::ToolPose pose;
+  uint32_t buttons = 0;
+  uint64_t sequence = 0;
+};
+
+struct SessionOrgan {
+  solve::BuiltOrgan built;
+  std::unique_ptr<models::TissueState> state;
+  std::unique_ptr<contact::OrganSurface> surface;
+  std::unique_ptr<contact::FemCompliance> compliance;  // FEM organs that are held; else null
+  std::vector<models::Attachment> attachments;         // this step's springs (capacity fixed)
+  int32_t num_attachments = 0;
+  double time = 0.0;  // [s] of this organ's accepted and rejected steps
+  int64_t rejected_steps = 0;
+};
+
+struct SessionTool {
+  std::string id;
+  contact::ToolShape shape;
+  ToolCommandInput command;
+  bool commanded = false;  // a command has arrived
+  std::vector<std::unique_ptr<contact::ToolContact>> contacts;  // one per organ (none: camera)
+  contact::LocalForceModel force_model;
+  int32_t force_organ = -1;  // the organ the force model comes from, or -1
+  bool was_touching = false;
+  bool was_grasping = false;
+};
+
+struct SessionRigid {
+  std::string id;
+  std::unique_ptr<contact::RigidSphere> sphere;
+  int32_t organ = -1;  // the organ it lies in (-1: none, it only falls and meets tools)
+};
+
+class Session {
+ public:
+  // Builds every organ, tool and rigid body of `scene` (files relative to `scene_dir`). Throws
+  // scene::SceneError for what the meshes refuse, mesh_io::MeshError for an unreadable mesh,
+  // std::invalid_argument for a tool or rigid body the contact code refuses.
+  Session(const scene::Scene& scene, const scene::SceneLines& lines, const std::string& scene_dir,
+          const contact::ContactSettings& contact_settings = {});
+  ~Session();
+  Session(const Session&) = delete;
+  Session& operator=(const Session&) = delete;
+
+  // Advances one tick of dt(). Allocation-free.
+  void Step();
+  // Sets what tool `tool` (0 .. num_tools-1) does from the next tick on.
+  void SetToolCommand(int32_t tool, const ToolCommandInput& command);
+  // Every organ back to rest, tools' contacts and grasps forgotten, time 0.
+  void Reset();
+
+  double time() const { return time_; }  // [s]
+  double dt() const { return dt_; }      // [s] the tick
+  uint64_t ticks() const { return ticks_; }
+  const scene::Scene& scene() const { return scene_; }
+
+  int32_t num_organs() const { return static_cast<int32_t>(organs_.size()); }
+  const SessionOrgan& organ(int32_t i) const { return *organs_[static_cast<size_t>(i)]; }
+  int32_t OrganIndex(std::string_view id) const;  // -1 when unknown
+
+  int32_t num_tools() const { return static_cast<int32_t>(tools_.size()); }
+  const SessionTool& tool(int32_t i) const { return *tools_[static_cast<size_t>(i)]; }
+  int32_t ToolIndex(std::string_view id) const;  // -1 when unknown
+
+  int32_t num_rigid() const { return static_cast<int32_t>(rigid_.size()); }
+  const SessionRigid& rigid(int32_t i) const { return *rigid_[static_cast<size_t>(i)]; }
+
+  // Events since the last TakeEvents (oldest first; at most kMaxEvents are kept, the oldest
+  // dropped beyond that and counted in events_dropped()). Clears them.
+  static constexpr int32_t kMaxEvents = 256;
+  std::span<const SessionEventRecord> TakeEvents();
+  uint64_t events_dropped() const { return events_dropped_; }
+
+  // Counters since start.
+  uint64_t organ_steps() const { return organ_steps_; }
+  uint64_t rejected_steps() const { return rejected_steps_; }
+
+ private:
+  void StepOrgan(int32_t k);
+  void UpdateForceModel(int32_t t);
+  void Emit(SessionEventRecord::Kind kind, int32_t organ, int32_t tool, int32_t detail);
+
+  scene::Scene scene_;
+  Eigen::Vector3d gravity_ = Eigen::Vector3d::Zero();
+  contact::ContactSettings contact_settings_;
+  std::vector<std::unique_ptr<SessionOrgan>> organs_;
+  std::vector<std::unique_ptr<SessionTool>> tools_;
+  std::vector<std::unique_ptr<SessionRigid>> rigid_;
+  double time_ = 0.0;
+  double dt_ = 1e-3;
+  uint64_t ticks_ = 0;
+  uint64_t organ_steps_ = 0;
+  uint64_t rejected_steps_ = 0;
+  std::array<SessionEventRecord, kMaxEvents> events_{};
+  std::array<SessionEventRecord, kMaxEvents> taken_{};
+  int32_t num_events_ = 0;
+  uint64_t events_dropped_ = 0;
+};
+
+// The scene the server runs for `builtin:NAME`: scene::DefaultScene(NAME) run as dynamics (FEM
+// organs at a 10 ms step, the interactive rate of SPEC §1's 0.1–10 ms range for volume FEM, with
+// at most 30 conjugate-gradient iterations per step and light Rayleigh damping),
+// with three tools: "probe", "grasper" (jaws 15 mm, grasp radius 3 mm) and "scalpel" (blade
+// 10 mm). Throws std::invalid_argument for an unknown organ.
+scene::Scene ServerDefaultScene(std::string_view organ);
+
+// A scene tool's shape (defaults for zero dimensions, as idl/scene.proto gives them).
+contact::ToolShape ToolShapeOf(const scene::Tool& tool);
+
+}  // namespace somasim::server

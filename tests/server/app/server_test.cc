@@ -1,0 +1,431 @@
+// somasim-server and the mock haptic node over real Cyclone DDS on loopback (issue 7): every
+// test starts the programs as child processes on its own domain id (140..159), so `ctest -j`
+// cannot cross them, and talks to them through tests/server/app/session_client.h.
+#include <gtest/gtest.h>
+
+#include <chrono>
+#include <cmath>
+#include <csignal>
+#include <fstream>
+#include <limits>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <thread>
+
+#include "tests/server/app/session_client.h"
+#include "tests/support/run_program.h"
+#include "tests/support/sanitizer.h"
+
+namespace somasim::testing {
+namespace {
+
+using std::chrono::milliseconds;
+using std::chrono::seconds;
+using Clock = std::chrono::steady_clock;
+
+std::vector<std::string> ServerArgs(const std::string& scene, const std::string& session,
+                                    uint32_t domain, std::vector<std::string> extra = {}) {
+  std::vector<std::string> args{"--scene",  scene,  "--session",    session,
+                                "--domain", std::to_string(domain), "--dds-config",
+                                LoopbackConfigFile()};
+  args.insert(args.end(), extra.begin(), extra.end());
+  return args;
+}
+
+nlohmann::json ReadJson(const std::string& path) {
+  const std::string text = ReadText(path);
+  if (text.empty()) return nlohmann::json::object();
+  return nlohmann::json::parse(text);
+}
+
+std::vector<float> ReadFloats(const std::string& path) {
+  std::ifstream in(path, std::ios::binary | std::ios::ate);
+  const auto size = static_cast<size_t>(in.tellg());
+  std::vector<float> v(size / sizeof(float));
+  in.seekg(0);
+  in.read(reinterpret_cast<char*>(v.data()), static_cast<std::streamsize>(size));
+  return v;
+}
+
+// The probe pressing the kidney's top (z = 22.4 mm at most) cyclically, from 2 mm above to
+// 4 mm below, once a second.
+somasim_wire_ToolCommand Pressing(double t, uint64_t seq) {
+  const double depth = 0.006 * 0.5 * (1.0 - std::cos(2.0 * M_PI * t));  // [m]
+  return ToolCommandAt("probe", 0.0, 0.0, 0.0224 + 0.002 - depth, seq);
+}
+
+TEST(ServerOverDds, LateAndLossySubscribersConvergeToTheServersFloatsBitForBit) {
+  const std::string dir = TempDir("late");
+  auto server = StartProgram(
+      "somasim-server",
+      ServerArgs("builtin:kidney424", "late", 140, {"--dump-final", dir + "/final"}),
+      dir + "/server.log");
+  SessionClient all(140, "late");
+  SessionClient lossy(140, "late");
+  lossy.DropFrames(0.3, 7);
+  // What the lossless client held at each frame.
+  std::map<uint64_t, std::vector<float>> history;
+  all.on_applied = [&history](const std::string&, uint64_t frame, const std::vector<float>& p) {
+    history[frame] = p;
+  };
+  int compared = 0;
+  int mismatched = 0;
+  const auto check = [&](const std::string&, uint64_t frame, const std::vector<float>& p) {
+    const auto it = history.find(frame);
+    if (it == history.end()) return;
+    ++compared;
+    if (it->second != p) ++mismatched;
+  };
+  lossy.on_applied = check;
+  ASSERT_TRUE(all.PollUntil([&] { return all.has_session(); }, seconds(30)))
+      << ReadText(dir + "/server.log");
+  const Clock::time_point start = Clock::now();
+  uint64_t seq = 0;
+  const auto drive = [&] {
+    const double t = std::chrono::duration<double>(Clock::now() - start).count();
+    all.SendToolCommand(Pressing(t, ++seq));
+  };
+  // Until the lossless client has seen 500 frames (8.3 s at 60 Hz).
+  ASSERT_TRUE(all.PollUntil(
+      [&] {
+        drive();
+        lossy.Poll();
+        return all.organs()["kidney424"].frames_received >= 500;
+      },
+      seconds(60)));
+  // A subscriber joining now converges within 1 s (keyframes every 0.5 s).
+  SessionClient late(140, "late");
+  late.on_applied = check;
+  const Clock::time_point joined = Clock::now();
+  const bool converged = late.PollUntil(
+      [&] {
+        drive();
+        all.Poll();
+        lossy.Poll();
+        auto it = late.organs().find("kidney424");
+        return it != late.organs().end() && it->second.decoder && it->second.decoder->has_shape();
+      },
+      seconds(5));
+  const double took = std::chrono::duration<double>(Clock::now() - joined).count();
+  ASSERT_TRUE(converged);
+  EXPECT_LT(took, 1.0) << "the late subscriber took " << took << " s";
+  // A little more pressing, then a clean stop.
+  const Clock::time_point more = Clock::now();
+  while (Clock::now() - more < milliseconds(1000)) {
+    drive();
+    all.Poll();
+    lossy.Poll();
+    late.Poll();
+    std::this_thread::sleep_for(milliseconds(2));
+  }
+  // The last frame (a keyframe) must reach every subscriber to compare: no more dropping.
+  lossy.DropFrames(0.0, 0);
+  server->Signal(SIGTERM);
+  EXPECT_EQ(server->Wait(seconds(10)), 0) << ReadText(dir + "/server.log");
+  for (int i = 0; i < 100; ++i) {
+    all.Poll();
+    lossy.Poll();
+    late.Poll();
+    std::this_thread::sleep_for(milliseconds(5));
+  }
+  const std::vector<float> final = ReadFloats(dir + "/final/kidney424.f32");
+  const uint64_t final_frame = std::stoull(ReadText(dir + "/final/kidney424.frame"));
+  ASSERT_EQ(final.size(), 3u * all.organs()["kidney424"].num_nodes);
+  for (SessionClient* c : {&all, &lossy, &late}) {
+    const OrganView& o = c->organs()["kidney424"];
+    ASSERT_TRUE(o.decoder);
+    EXPECT_EQ(o.decoder->frame(), final_frame)
+        << "received " << o.frames_received << " dropped " << o.frames_dropped_on_purpose
+        << " applied " << o.decoder->applied() << " waited " << o.decoder->waited() << " stale "
+        << o.decoder->stale();
+    const auto p = o.decoder->positions();
+    EXPECT_TRUE(std::vector<float>(p.begin(), p.end()) == final) << "not bit for bit";
+    EXPECT_EQ(o.bad_frames, 0u);
+  }
+  EXPECT_GT(lossy.organs()["kidney424"].frames_dropped_on_purpose, 100u);
+  EXPECT_GT(compared, 50);  // frames the lossy and the late subscriber applied
+  EXPECT_EQ(mismatched, 0);
+  // The pressing made partial deltas: the shape changed between frames.
+  EXPECT_NE(history.begin()->second, history.rbegin()->second);
+}
+
+TEST(ServerOverDds, BadToolCommandsAreDroppedAndCounted) {
+  const std::string dir = TempDir("bad_commands");
+  auto server =
+      StartProgram("somasim-server",
+                   ServerArgs("builtin:kidney424", "bad", 141, {"--report", dir + "/r.json"}),
+                   dir + "/server.log");
+  SessionClient c(141, "bad");
+  ASSERT_TRUE(c.PollUntil([&] { return c.heartbeats() > 0; }, seconds(30)));
+  std::this_thread::sleep_for(milliseconds(300));  // the server's reader has matched ours
+  std::vector<somasim_wire_ToolCommand> commands;
+  commands.push_back(ToolCommandAt("probe", 0, 0, 0.05, 1));  // good
+  auto nan = ToolCommandAt("probe", std::numeric_limits<double>::quiet_NaN(), 0, 0.05, 2);
+  commands.push_back(nan);
+  commands.push_back(ToolCommandAt("scalpelx", 0, 0, 0.05, 3));  // unknown tool
+  auto quat = ToolCommandAt("probe", 0, 0, 0.05, 4);
+  quat.orientation[0] = 2.0;  // not a unit quaternion
+  commands.push_back(quat);
+  auto jaw = ToolCommandAt("grasper", 0, 0, 0.05, 5);
+  jaw.jaw_closure = 1.5;
+  commands.push_back(jaw);
+  auto version = ToolCommandAt("probe", 0, 0, 0.05, 6);
+  version.format_version = 7;
+  commands.push_back(version);
+  commands.push_back(ToolCommandAt("", 0, 0, 0.05, 7));  // empty id
+  const std::string long_id(300, 'x');
+  commands.push_back(ToolCommandAt(long_id.c_str(), 0, 0, 0.05, 8));  // no such tool
+  auto far = ToolCommandAt("scalpel", 0, 0, 1e6, 9);  // beyond 10 m
+  commands.push_back(far);
+  for (const auto& command : commands) {
+    c.SendToolCommand(command);
+    std::this_thread::sleep_for(milliseconds(60));  // the server takes each before the next
+  }
+  std::this_thread::sleep_for(milliseconds(200));
+  server->Signal(SIGTERM);
+  ASSERT_EQ(server->Wait(seconds(10)), 0) << ReadText(dir + "/server.log");
+  const nlohmann::json r = ReadJson(dir + "/r.json");
+  EXPECT_EQ(r["tool_commands_received"], 9);
+  EXPECT_EQ(r["tool_commands_rejected"], 8);
+  EXPECT_GT(r["organ_steps"].get<int>(), 0);
+  EXPECT_EQ(r["rejected_steps"], 0);
+  const std::string log = ReadText(dir + "/server.log");
+  EXPECT_NE(log.find("position is not finite"), std::string::npos);
+  EXPECT_NE(log.find("unknown tool \\\"scalpelx\\\""), std::string::npos);
+  EXPECT_NE(log.find("format_version 7"), std::string::npos);
+}
+
+TEST(ServerOverDds, TwoSessionsInDifferentPartitionsNeverSeeEachOther) {
+  const std::string dir = TempDir("partitions");
+  auto a = StartProgram("somasim-server",
+                        ServerArgs("builtin:tissue45", "ward-a", 142, {"--report", dir + "/a.json"}),
+                        dir + "/a.log");
+  auto b = StartProgram("somasim-server",
+                        ServerArgs("builtin:tissue45", "ward-b", 142, {"--report", dir + "/b.json"}),
+                        dir + "/b.log");
+  SessionClient ca(142, "ward-a");
+  SessionClient cb(142, "ward-b");
+  ASSERT_TRUE(ca.PollUntil(
+      [&] {
+        cb.Poll();
+        return ca.has_session() && cb.has_session();
+      },
+      seconds(30)));
+  uint64_t seq = 0;
+  const Clock::time_point start = Clock::now();
+  while (Clock::now() - start < milliseconds(1500)) {
+    ca.SendToolCommand(ToolCommandAt("probe", 0, 0, 0.01, ++seq));
+    ca.Poll();
+    cb.Poll();
+    std::this_thread::sleep_for(milliseconds(5));
+  }
+  a->Signal(SIGTERM);
+  b->Signal(SIGTERM);
+  ASSERT_EQ(a->Wait(seconds(10)), 0);
+  ASSERT_EQ(b->Wait(seconds(10)), 0);
+  EXPECT_EQ(ca.server_ids_seen().size(), 1u);
+  EXPECT_EQ(cb.server_ids_seen().size(), 1u);
+  EXPECT_NE(ca.server_id(), cb.server_id());
+  EXPECT_GT(ca.heartbeats(), 5u);
+  EXPECT_GT(cb.heartbeats(), 5u);
+  EXPECT_GT(ca.organs()["tissue45"].frames_received, 30u);
+  EXPECT_GT(cb.organs()["tissue45"].frames_received, 30u);
+  EXPECT_GT(ca.force_models(), 0u);  // a's probe was commanded
+  EXPECT_EQ(cb.force_models(), 0u);  // b's never was
+  EXPECT_GT(ReadJson(dir + "/a.json")["tool_commands_received"].get<int>(), 0);
+  EXPECT_EQ(ReadJson(dir + "/b.json")["tool_commands_received"].get<int>(), 0);
+}
+
+TEST(ServerOverDds, KillingTheServerIsNoticedByTheMockNodeWithinTheLease) {
+  if (kUnderSanitizer) GTEST_SKIP() << "a timing deadline: run in the Release build";
+  const std::string dir = TempDir("kill_server");
+  auto server = StartProgram("somasim-server", ServerArgs("builtin:tissue45", "ks", 143),
+                             dir + "/server.log");
+  auto mock = StartProgram(
+      "somasim-haptic",
+      {"--device", "mock", "--script", std::string(SOMASIM_SCRIPTS_DIR) + "/palpate.txt",
+       "--session", "ks", "--domain", "143", "--dds-config", LoopbackConfigFile(),
+       "--wait-server", "30", "--report", dir + "/haptic.json"},
+      dir + "/haptic.log");
+  const Clock::time_point wait = Clock::now();
+  while (ReadText(dir + "/haptic.log").find("server_found") == std::string::npos) {
+    ASSERT_LT(Clock::now() - wait, seconds(30)) << ReadText(dir + "/haptic.log");
+    std::this_thread::sleep_for(milliseconds(20));
+  }
+  std::this_thread::sleep_for(milliseconds(500));
+  const Clock::time_point killed = Clock::now();
+  server->Signal(SIGKILL);
+  EXPECT_EQ(mock->Wait(seconds(5)), 7) << ReadText(dir + "/haptic.log");  // server lost
+  const nlohmann::json r = ReadJson(dir + "/haptic.json");
+  ASSERT_TRUE(r["server_lost"].get<bool>());
+  const double after_ms =
+      1e-6 * static_cast<double>(r["server_lost_monotonic_ns"].get<int64_t>() -
+                                 std::chrono::duration_cast<std::chrono::nanoseconds>(
+                                     killed.time_since_epoch())
+                                     .count());
+  // The lease is 500 ms from the last heartbeat (sent every 100 ms before the kill).
+  EXPECT_LE(after_ms, 550.0);
+  EXPECT_GE(after_ms, 350.0);
+}
+
+TEST(ServerOverDds, KillingTheMockNodeDoesNotDisturbTheServer) {
+  if (kUnderSanitizer) GTEST_SKIP() << "compares step times: run in the Release build";
+  const std::string dir = TempDir("kill_mock");
+  auto server = StartProgram("somasim-server", ServerArgs("builtin:kidney424", "km", 144),
+                             dir + "/server.log");
+  auto mock = StartProgram(
+      "somasim-haptic",
+      {"--device", "mock", "--script", std::string(SOMASIM_SCRIPTS_DIR) + "/palpate.txt",
+       "--session", "km", "--domain", "144", "--dds-config", LoopbackConfigFile(),
+       "--wait-server", "30"},
+      dir + "/haptic.log");
+  SessionClient c(144, "km");
+  ASSERT_TRUE(c.PollUntil([&] { return c.metrics().size() >= 3; }, seconds(40)));
+  const size_t before = c.metrics().size();
+  mock->Signal(SIGKILL);
+  mock->Wait(seconds(5));
+  const uint64_t heartbeats = c.heartbeats();
+  ASSERT_TRUE(c.PollUntil([&] { return c.metrics().size() >= before + 3; }, seconds(10)));
+  double p99_before = 0.0;
+  double p99_after = 0.0;
+  double rate_before = std::numeric_limits<double>::infinity();
+  double rate_after = std::numeric_limits<double>::infinity();
+  for (size_t i = 1; i < c.metrics().size(); ++i) {  // the first second includes start-up
+    const auto& m = c.metrics()[i];
+    (i < before ? p99_before : p99_after) =
+        std::max(i < before ? p99_before : p99_after, m.step_p99_us);
+    (i < before ? rate_before : rate_after) =
+        std::min(i < before ? rate_before : rate_after, m.physics_rate_hz);
+  }
+  EXPECT_LE(p99_after, 3.0 * p99_before + 2000.0) << "step p99 before " << p99_before << " us";
+  EXPECT_GE(rate_after, 0.8 * rate_before);
+  EXPECT_GE(c.heartbeats() - heartbeats, 25u);  // 3 s of heartbeats at 10 Hz
+  server->Signal(SIGTERM);
+  EXPECT_EQ(server->Wait(seconds(10)), 0);
+}
+
+TEST(ServerOverDds, ASceneWithTwoOrgansAndARigidBodyRuns) {
+  const std::string dir = TempDir("two_organs");
+  auto server = StartProgram(
+      "somasim-server",
+      ServerArgs(std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/server_two_organs.scene.txtpb",
+                 "two", 145, {"--duration", "3", "--report", dir + "/r.json"}),
+      dir + "/server.log");
+  SessionClient c(145, "two");
+  ASSERT_TRUE(c.PollUntil(
+      [&] {
+        return c.has_session() && c.organs()["kidney"].decoder &&
+               c.organs()["kidney"].decoder->has_shape() && c.organs()["patch"].decoder &&
+               c.organs()["patch"].decoder->has_shape();
+      },
+      seconds(30)))
+      << ReadText(dir + "/server.log");
+  EXPECT_EQ(c.session_organs(), 2u);
+  EXPECT_EQ(c.organs()["kidney"].num_nodes, 430u);  // kidney424's volume mesh
+  EXPECT_EQ(c.organs()["patch"].num_nodes, 45u);
+  ASSERT_EQ(server->Wait(seconds(60)), 0) << ReadText(dir + "/server.log");
+  const nlohmann::json r = ReadJson(dir + "/r.json");
+  EXPECT_EQ(r["organ_steps"], 3 * (100 + 1000));  // kidney at 10 ms, patch at 1 ms
+  EXPECT_EQ(r["rejected_steps"], 0);
+}
+
+TEST(ServerOverDds, InstructorPauseHoldsTheSessionAndResumeGoesOn) {
+  const std::string dir = TempDir("pause");
+  auto server = StartProgram("somasim-server", ServerArgs("builtin:tissue45", "pause", 146),
+                             dir + "/server.log");
+  SessionClient c(146, "pause");
+  ASSERT_TRUE(c.PollUntil([&] { return c.heartbeats() > 2; }, seconds(30)));
+  std::this_thread::sleep_for(milliseconds(200));
+  c.SendInstructorCommand(1, "");
+  ASSERT_TRUE(c.PollUntil([&] { return c.last_state() == 3; }, seconds(5)));
+  c.PollUntil([] { return false; }, milliseconds(150));
+  const double paused_at = c.last_sim_time();
+  c.PollUntil([] { return false; }, milliseconds(400));
+  EXPECT_EQ(c.last_sim_time(), paused_at);
+  c.SendInstructorCommand(2, "");
+  ASSERT_TRUE(c.PollUntil([&] { return c.last_state() == 2 && c.last_sim_time() > paused_at + 0.1; },
+                          seconds(5)));
+  c.SendInstructorCommand(4, "watch the tip");
+  const auto has = [&c](const std::string& text) {
+    for (const std::string& e : c.event_texts()) {
+      if (e.find(text) != std::string::npos) return true;
+    }
+    return false;
+  };
+  EXPECT_TRUE(c.PollUntil([&] { return has("watch the tip"); }, seconds(5)));
+  EXPECT_TRUE(has("paused by instructor instructor-test"));
+  EXPECT_TRUE(has("resumed by instructor instructor-test"));
+  EXPECT_TRUE(has("session starts"));  // the event history reaches a client that joined later
+  server->Signal(SIGINT);
+  EXPECT_EQ(server->Wait(seconds(10)), 0);
+}
+
+TEST(ServerCommandLine, RefusesBadOptionsAndScenesWithClearErrors) {
+  EXPECT_EQ(RunProgram("somasim-server", "--help").status, 0);
+  const ToolRun version = RunProgram("somasim-server", "--version");
+  EXPECT_EQ(version.status, 0);
+  EXPECT_NE(version.out.find("somasim-server 0."), std::string::npos);
+  const ToolRun session = RunProgram("somasim-server", "--session 'a b' --duration 1");
+  EXPECT_EQ(session.status, 2);
+  EXPECT_NE(session.out.find("--session \"a b\" may hold only"), std::string::npos);
+  EXPECT_EQ(RunProgram("somasim-server", "--frame-rate 0").status, 2);
+  EXPECT_EQ(RunProgram("somasim-server", "--no-such-option").status, 2);
+  const ToolRun unknown = RunProgram("somasim-server", "--scene builtin:pancreas");
+  EXPECT_EQ(unknown.status, 3);
+  EXPECT_NE(unknown.out.find("unknown organ \"pancreas\""), std::string::npos);
+  const std::string dir = TempDir("cli");
+  std::ofstream(dir + "/bad.scene.txtpb") << "format_version: 1\norgan {\n  id: \"x\"\n  "
+                                             "builtin: \"kidney424\"\n  model { fem_linear {} }\n  "
+                                             "material { density: -1 }\n}\n";
+  const ToolRun bad = RunProgram("somasim-server", "--scene " + dir + "/bad.scene.txtpb");
+  EXPECT_EQ(bad.status, 3);
+  EXPECT_NE(bad.out.find("bad.scene.txtpb:6"), std::string::npos) << bad.out;
+  EXPECT_NE(bad.out.find("density"), std::string::npos) << bad.out;
+  EXPECT_EQ(RunProgram("somasim-server", "--scene " + dir + "/missing.scene.txtpb").status, 3);
+  const ToolRun config =
+      RunProgram("somasim-server", "--scene builtin:tissue45 --dds-config " + dir + "/none.xml");
+  EXPECT_EQ(config.status, 4);
+  EXPECT_NE(config.out.find("none.xml"), std::string::npos);
+}
+
+TEST(MockHapticCommandLine, RefusesBadOptionsAndScriptsAndWaitsForAServer) {
+  EXPECT_EQ(RunProgram("somasim-haptic", "--help").status, 0);
+  EXPECT_EQ(RunProgram("somasim-haptic", "--device shm --script x").status, 2);
+  EXPECT_EQ(RunProgram("somasim-haptic", "--device mock").status, 2);
+  const std::string dir = TempDir("mock_cli");
+  std::ofstream(dir + "/bad.txt") << "somasim-script 1\ntool probe\nkey 0 0 0 nan\n";
+  const ToolRun bad = RunProgram("somasim-haptic", "--script " + dir + "/bad.txt");
+  EXPECT_EQ(bad.status, 3);
+  EXPECT_NE(bad.out.find("bad.txt:3"), std::string::npos) << bad.out;
+  EXPECT_EQ(RunProgram("somasim-haptic", "--script " + dir + "/missing.txt").status, 4);
+  const ToolRun none = RunProgram(
+      "somasim-haptic", "--script " + std::string(SOMASIM_SCRIPTS_DIR) +
+                            "/palpate.txt --session nobody --domain 147 --dds-config " +
+                            LoopbackConfigFile() + " --wait-server 0.5");
+  EXPECT_EQ(none.status, 6);
+  EXPECT_NE(none.out.find("no_server"), std::string::npos);
+}
+
+TEST(Demo, PalpatingTheLiverRendersForcesAndReportsThem) {
+  if (kUnderSanitizer) GTEST_SKIP() << "the 4055-node liver: run in the Release build";
+  const std::string dir = TempDir("demo");
+  const ToolRun run = RunProgram(
+      "somasim-demo", "--duration 7 --script " + std::string(SOMASIM_SCRIPTS_DIR) +
+                          "/palpate.txt --out " + dir + " --domain 148 --dds-config " +
+                          LoopbackConfigFile());
+  ASSERT_EQ(run.status, 0) << run.out << ReadText(dir + "/server.log")
+                           << ReadText(dir + "/haptic.log");
+  EXPECT_NE(run.out.find("somasim demo summary"), std::string::npos);
+  const nlohmann::json r = ReadJson(dir + "/demo_report.json");
+  const nlohmann::json& h = r["haptic"];
+  const nlohmann::json& s = r["server"];
+  EXPECT_GT(h["max_force_n"].get<double>(), 0.3);
+  EXPECT_GT(h["contact_time_s"].get<double>(), 0.5);
+  EXPECT_FALSE(h["server_lost"].get<bool>());
+  EXPECT_EQ(s["rejected_steps"], 0);
+  EXPECT_GE(s["events"]["contact begins"].get<int>(), 3);
+  EXPECT_GT(s["frames_published"].get<int>(), 100);
+}
+
+}  // namespace
+}  // namespace somasim::testing

@@ -1,0 +1,197 @@
+// The session's physics (server/session/session.h) on small built-in organs.
+#include "server/session/session.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "common/mesh/geometry.h"
+#include "tests/support/allocation_counter.h"
+
+namespace somasim::server {
+namespace {
+
+scene::Scene KidneyScene() { return ServerDefaultScene("kidney424"); }
+
+// The surface node with the largest z: a place to press from above.
+Eigen::Vector3d TopOf(const Session& session, int32_t organ) {
+  const SessionOrgan& o = session.organ(organ);
+  Eigen::Vector3d top(0.0, 0.0, -1e9);
+  for (Eigen::Index j = 0; j < o.built.triangles.size(); ++j) {
+    const Eigen::Vector3d p = o.state->positions.col(o.built.triangles.data()[j]);
+    if (p.z() > top.z()) top = p;
+  }
+  return top;
+}
+
+ToolCommandInput At(const Eigen::Vector3d& tip, double jaw_opening, uint64_t sequence) {
+  ToolCommandInput c;
+  c.pose.tip = tip;
+  c.pose.jaw_opening = jaw_opening;
+  c.sequence = sequence;
+  return c;
+}
+
+TEST(Session, DefaultSceneHasThreeToolsAndTicksAtTheFemStep) {
+  const Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
+  EXPECT_EQ(session.num_organs(), 1);
+  EXPECT_EQ(session.num_tools(), 3);
+  EXPECT_EQ(session.ToolIndex("probe"), 0);
+  EXPECT_EQ(session.ToolIndex("grasper"), 1);
+  EXPECT_EQ(session.ToolIndex("scalpel"), 2);
+  EXPECT_EQ(session.ToolIndex("nope"), -1);
+  EXPECT_EQ(session.OrganIndex("kidney424"), 0);
+  EXPECT_DOUBLE_EQ(session.dt(), 0.01);
+  EXPECT_EQ(session.tool(1).shape.kind, contact::ToolKind::kGrasper);
+}
+
+TEST(Session, PressingTheProbeGivesContactEventsAndAPushingForceModel) {
+  Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
+  const Eigen::Vector3d top = TopOf(session, 0);
+  bool began = false;
+  for (int i = 0; i <= 40; ++i) {
+    // From 1 cm above to 3 mm below the top over 0.4 s.
+    const double depth = -0.01 + 0.013 * i / 40.0;
+    session.SetToolCommand(0, At(top - depth * Eigen::Vector3d::UnitZ(), 1.0, 1 + i));
+    session.Step();
+    for (const SessionEventRecord& e : session.TakeEvents()) {
+      if (e.kind == SessionEventRecord::Kind::kContactBegins) {
+        began = true;
+        EXPECT_EQ(e.tool, 0);
+        EXPECT_EQ(e.organ, 0);
+      }
+    }
+  }
+  EXPECT_TRUE(began);
+  const contact::LocalForceModel& m = session.tool(0).force_model;
+  EXPECT_TRUE(m.in_contact);
+  EXPECT_EQ(session.tool(0).force_organ, 0);
+  EXPECT_EQ(m.sequence, 41u);
+  EXPECT_GT(m.contact_stiffness, 0.0);
+  const contact::ForceSample f =
+      contact::EvaluateLocalForceModel(m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
+  EXPECT_GT(f.force.z(), 0.1);  // the tissue pushes the probe up [N]
+  EXPECT_EQ(session.organ_steps(), 41u);
+  EXPECT_EQ(session.rejected_steps(), 0u);
+  // Lifting the probe ends the contact.
+  session.SetToolCommand(0, At(top + 0.02 * Eigen::Vector3d::UnitZ(), 1.0, 100));
+  bool ended = false;
+  for (int i = 0; i < 5; ++i) {
+    session.Step();
+    for (const SessionEventRecord& e : session.TakeEvents()) {
+      ended |= e.kind == SessionEventRecord::Kind::kContactEnds;
+    }
+  }
+  EXPECT_TRUE(ended);
+  EXPECT_FALSE(session.tool(0).force_model.in_contact);
+}
+
+TEST(Session, GraspingAndPullingLiftsTheTissueAndReleaseLetsGo) {
+  Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
+  const Eigen::Vector3d top = TopOf(session, 0);
+  const int32_t g = session.ToolIndex("grasper");
+  uint64_t seq = 0;
+  // Reach 1 mm into the surface with open jaws, close, pull up 5 mm.
+  for (int i = 0; i < 10; ++i) {
+    session.SetToolCommand(g, At(top - 0.001 * Eigen::Vector3d::UnitZ(), 1.0, ++seq));
+    session.Step();
+  }
+  for (int i = 0; i < 10; ++i) {
+    session.SetToolCommand(g, At(top - 0.001 * Eigen::Vector3d::UnitZ(), 0.0, ++seq));
+    session.Step();
+  }
+  bool grasped = false;
+  for (const SessionEventRecord& e : session.TakeEvents()) {
+    if (e.kind == SessionEventRecord::Kind::kGrasp) {
+      grasped = true;
+      EXPECT_GT(e.detail, 0);  // nodes held
+    }
+  }
+  ASSERT_TRUE(grasped);
+  for (int i = 0; i < 50; ++i) {
+    session.SetToolCommand(g, At(top + (0.005 * i / 50.0 - 0.001) * Eigen::Vector3d::UnitZ(), 0.0,
+                                 ++seq));
+    session.Step();
+  }
+  const contact::LocalForceModel& m = session.tool(g).force_model;
+  EXPECT_TRUE(m.grasping);
+  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+      m, session.tool(g).command.pose.tip, Eigen::Vector3d::Zero());
+  EXPECT_LT(f.force.z(), -0.05);  // the tissue pulls the jaws down [N]
+  EXPECT_GT(TopOf(session, 0).z(), top.z() + 0.001);  // and is lifted
+  session.SetToolCommand(g, At(top + 0.004 * Eigen::Vector3d::UnitZ(), 1.0, ++seq));
+  session.Step();
+  bool released = false;
+  for (const SessionEventRecord& e : session.TakeEvents()) {
+    released |= e.kind == SessionEventRecord::Kind::kRelease;
+  }
+  EXPECT_TRUE(released);
+  EXPECT_FALSE(session.tool(g).force_model.grasping);
+}
+
+TEST(Session, StepAllocatesNothing) {
+  Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
+  const Eigen::Vector3d top = TopOf(session, 0);
+  for (int i = 0; i < 3; ++i) session.Step();  // warm up
+  testing::AllocationCounter counter;
+  for (int i = 0; i < 20; ++i) {
+    session.SetToolCommand(0, At(top - 0.0002 * i * Eigen::Vector3d::UnitZ(), 1.0, 1 + i));
+    session.Step();
+    (void)session.TakeEvents();
+  }
+  EXPECT_EQ(counter.count(), 0);
+}
+
+TEST(Session, OrgansWithDifferentStepsAdvanceAtTheirOwnRate) {
+  scene::Scene s = ServerDefaultScene("kidney424");
+  scene::Organ* patch = s.add_organ();
+  *patch = scene::DefaultScene("tissue45").organ(0);
+  patch->set_id("patch");
+  patch->mutable_model()->set_dt(0.001);
+  // Move the patch away from the kidney.
+  Session session(s, scene::SceneLines("two"), ".");
+  EXPECT_DOUBLE_EQ(session.dt(), 0.001);
+  for (int i = 0; i < 100; ++i) session.Step();
+  EXPECT_NEAR(session.time(), 0.1, 1e-12);
+  EXPECT_NEAR(session.organ(0).time, 0.1, 1e-9);  // 10 steps of 10 ms
+  EXPECT_NEAR(session.organ(1).time, 0.1, 1e-9);  // 100 steps of 1 ms
+  EXPECT_EQ(session.organ_steps(), 110u);
+}
+
+TEST(Session, ARigidStoneRestsOnAKidneyInASceneWithTwoOrgans) {
+  scene::Scene s = ServerDefaultScene("kidney424");
+  scene::Organ* patch = s.add_organ();
+  *patch = scene::DefaultScene("tissue45").organ(0);
+  patch->set_id("patch");
+  scene::RigidBody* stone = s.add_rigid_body();
+  stone->set_id("stone");
+  // On top of the kidney, touching it.
+  const Session probe_session(ServerDefaultScene("kidney424"), scene::SceneLines("k"), ".");
+  const Eigen::Vector3d centre = TopOf(probe_session, 0) + 0.004 * Eigen::Vector3d::UnitZ();
+  stone->mutable_sphere()->mutable_center()->set_x(centre.x());
+  stone->mutable_sphere()->mutable_center()->set_y(centre.y());
+  stone->mutable_sphere()->mutable_center()->set_z(centre.z());
+  stone->mutable_sphere()->set_radius(0.004);
+  Session session(s, scene::SceneLines("stone"), ".");
+  ASSERT_EQ(session.num_rigid(), 1);
+  EXPECT_EQ(session.rigid(0).organ, 0);
+  for (int i = 0; i < 100; ++i) session.Step();
+  EXPECT_EQ(session.rejected_steps(), 0u);
+  const Eigen::Vector3d p = session.rigid(0).sphere->position();
+  EXPECT_TRUE(p.allFinite());
+  // Held by the kidney's surface: it sinks a little under its weight, never falls through.
+  EXPECT_LT((p - centre).norm(), 0.003);
+}
+
+TEST(Session, ResetReturnsToRestAndTimeZero) {
+  Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
+  const mesh::Points rest = session.organ(0).state->positions;
+  for (int i = 0; i < 20; ++i) session.Step();
+  EXPECT_GT((session.organ(0).state->positions - rest).norm(), 0.0);
+  session.Reset();
+  EXPECT_EQ(session.time(), 0.0);
+  EXPECT_EQ((session.organ(0).state->positions - rest).norm(), 0.0);
+}
+
+}  // namespace
+}  // namespace somasim::server
