@@ -1,7 +1,8 @@
 // somasim-demo: the README's main job. Runs the headless demo session on loopback — a
 // somasim-server on the built-in liver and a mock haptic node playing the demo script
 // (palpate, grasp and pull, incision) — waits for both, then prints a summary and writes a
-// JSON report (steps, step-time percentiles, frames, forces, contact time, events).
+// JSON report (steps, step-time percentiles, frames, forces, contact time, events). The session
+// ends at --duration of session time or when the script ends, whichever comes first.
 // Exit code: 0 when both processes finished cleanly, else the first failure's.
 #include <unistd.h>
 
@@ -101,7 +102,14 @@ int Demo(int argc, char** argv) {
       return 70;
     }
     if (server_rc < 0) server_rc = server.Wait(std::chrono::milliseconds(50));
-    if (haptic_rc < 0) haptic_rc = haptic.Wait(std::chrono::milliseconds(50));
+    if (haptic_rc < 0) {
+      haptic_rc = haptic.Wait(std::chrono::milliseconds(50));
+      if (haptic_rc >= 0 && server_rc < 0) {
+        // The trainee's script is done: the session ends with it (a physics slower than real
+        // time has not reached --duration yet).
+        server.Signal(SIGTERM);
+      }
+    }
   }
   const double wall =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();

@@ -12,10 +12,6 @@
 #include <vector>
 
 #include "tests/support/allocation_counter.h"
-// The CMake entry of this test does not list tests/support/allocation_counter.cc (the other
-// tests that count allocations add it as a source), so its definitions come in here. Remove this
-// line if the entry gains the source (the global operator new would be defined twice).
-#include "tests/support/allocation_counter.cc"  // NOLINT(bugprone-suspicious-include)
 
 namespace somasim::haptic {
 namespace {

@@ -286,18 +286,23 @@ TEST(ServerOverDds, KillingTheMockNodeDoesNotDisturbTheServer) {
   mock->Wait(seconds(5));
   const uint64_t heartbeats = c.heartbeats();
   ASSERT_TRUE(c.PollUntil([&] { return c.metrics().size() >= before + 3; }, seconds(10)));
-  double p99_before = 0.0;
-  double p99_after = 0.0;
+  // Typical step times (p50: a step preempted by another test's process on this 2-core
+  // machine is not the server's doing) and the physics rate, each second before and after.
+  double p50_before = 0.0;
+  double p50_after = 0.0;
   double rate_before = std::numeric_limits<double>::infinity();
   double rate_after = std::numeric_limits<double>::infinity();
   for (size_t i = 1; i < c.metrics().size(); ++i) {  // the first second includes start-up
     const auto& m = c.metrics()[i];
-    (i < before ? p99_before : p99_after) =
-        std::max(i < before ? p99_before : p99_after, m.step_p99_us);
-    (i < before ? rate_before : rate_after) =
-        std::min(i < before ? rate_before : rate_after, m.physics_rate_hz);
+    if (i < before) {
+      p50_before = std::max(p50_before, m.step_p50_us);
+      rate_before = std::min(rate_before, m.physics_rate_hz);
+    } else {
+      p50_after = std::max(p50_after, m.step_p50_us);
+      rate_after = std::min(rate_after, m.physics_rate_hz);
+    }
   }
-  EXPECT_LE(p99_after, 3.0 * p99_before + 2000.0) << "step p99 before " << p99_before << " us";
+  EXPECT_LE(p50_after, 2.0 * p50_before + 1000.0) << "step p50 before " << p50_before << " us";
   EXPECT_GE(rate_after, 0.8 * rate_before);
   EXPECT_GE(c.heartbeats() - heartbeats, 25u);  // 3 s of heartbeats at 10 Hz
   server->Signal(SIGTERM);
