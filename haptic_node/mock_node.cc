@@ -101,8 +101,7 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
   }
   if (!found) return kExitOk;  // stopped while waiting
   last_heartbeat = Clock::now();
-  Log(LogLevel::kInfo, "server_found",
-      {{"server_id", server_id}, {"session", options.session}});
+  Log(LogLevel::kInfo, "server_found", {{"server_id", server_id}, {"session", options.session}});
 
   std::unique_ptr<std::ofstream> forces;
   if (!options.forces.empty()) {
@@ -189,8 +188,7 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
       lost = true;
       lost_at = now;
       Log(LogLevel::kError, "server_lost",
-          {{"silent_ms", 1e3 * Seconds(now - last_heartbeat)},
-           {"monotonic_ns", MonotonicNs(now)}});
+          {{"silent_ms", 1e3 * Seconds(now - last_heartbeat)}, {"monotonic_ns", MonotonicNs(now)}});
       break;
     }
     // The force the arm would render.
@@ -209,8 +207,8 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
         ++stale_ticks;
         scale = std::max(0.0, 1.0 - Seconds(age - kFresh) / Seconds(kRamp));
       }
-      const contact::ForceSample fs = contact::EvaluateLocalForceModel(tm.model, s.position,
-                                                                      velocity);
+      const contact::ForceSample fs =
+          contact::EvaluateLocalForceModel(tm.model, s.position, velocity);
       f = scale * fs.force;
       in_contact = tm.model.in_contact && fs.in_contact;
       grasping = tm.model.grasping;
@@ -224,8 +222,8 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
     if (forces) {
       *forces << t << ',' << tools[static_cast<size_t>(s.tool)] << ',' << s.position.x() << ','
               << s.position.y() << ',' << s.position.z() << ',' << f.x() << ',' << f.y() << ','
-              << f.z() << ',' << (in_contact ? 1 : 0) << ',' << (grasping ? 1 : 0) << ','
-              << age_ms << '\n';
+              << f.z() << ',' << (in_contact ? 1 : 0) << ',' << (grasping ? 1 : 0) << ',' << age_ms
+              << '\n';
     }
     ++ticks;
     next += period;
@@ -255,10 +253,11 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
   r["contact_time_s"] = contact_time;
   r["server_lost"] = lost;
   if (lost) r["server_lost_monotonic_ns"] = MonotonicNs(lost_at);
-  Log(LogLevel::kInfo, "done", {{"ticks", ticks},
-                                {"max_force_n", max_force},
-                                {"contact_time_s", contact_time},
-                                {"server_lost", lost}});
+  Log(LogLevel::kInfo, "done",
+      {{"ticks", ticks},
+       {"max_force_n", max_force},
+       {"contact_time_s", contact_time},
+       {"server_lost", lost}});
   if (!options.report.empty()) {
     std::ofstream out(options.report);
     out << r.dump(2) << "\n";

@@ -28,10 +28,10 @@ struct MockNodeOptions {
   std::string station = "station-1";
   uint32_t domain = 0;
   std::string dds_config;
-  double rate = 1000.0;        // [Hz] commands and force evaluations
-  double wait_server = 10.0;   // [s] for the first heartbeat
-  std::string forces;          // CSV of the rendered force per tick ("" = none)
-  std::string report;          // JSON report at the end ("" = none)
+  double rate = 1000.0;       // [Hz] commands and force evaluations
+  double wait_server = 10.0;  // [s] for the first heartbeat
+  std::string forces;         // CSV of the rendered force per tick ("" = none)
+  std::string report;         // JSON report at the end ("" = none)
   bool stop_at_script_end = true;
 };
 

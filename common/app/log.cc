@@ -52,8 +52,7 @@ void Log(LogLevel level, std::string_view event, const nlohmann::json& fields) {
   const std::lock_guard<std::mutex> lock(s.mutex);
   if (level < s.level) return;
   nlohmann::ordered_json line;
-  line["time"] =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - s.start).count();
+  line["time"] = std::chrono::duration<double>(std::chrono::steady_clock::now() - s.start).count();
   line["process"] = s.process;
   line["level"] = LevelName(level);
   line["event"] = std::string(event);

@@ -50,8 +50,7 @@ int Demo(int argc, char** argv) {
   cli.add_option("--duration", duration, "seconds of session time")
       ->check(CLI::Range(0.1, 3600.0))
       ->capture_default_str();
-  cli.add_option("--out", out_dir, "folder for logs, forces and the report")
-      ->capture_default_str();
+  cli.add_option("--out", out_dir, "folder for logs, forces and the report")->capture_default_str();
   cli.add_option("--dds-config", dds_config, "Cyclone DDS configuration")->capture_default_str();
   cli.add_option("--domain", domain, "DDS domain id")->check(CLI::Range(0, 232));
   try {
@@ -111,8 +110,7 @@ int Demo(int argc, char** argv) {
       }
     }
   }
-  const double wall =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const nlohmann::json s = ReadJson(out / "server_report.json");
   const nlohmann::json h = ReadJson(out / "haptic_report.json");
   nlohmann::ordered_json report;
@@ -138,8 +136,8 @@ int Demo(int argc, char** argv) {
     std::printf("step time        p50 %.0f us, p90 %.0f us, p99 %.0f us, max %.0f us\n",
                 num(p, "p50"), num(p, "p90"), num(p, "p99"), num(p, "max"));
   }
-  std::printf("frames           %.0f published; %.0f force models\n",
-              num(s, "frames_published"), num(s, "force_models_published"));
+  std::printf("frames           %.0f published; %.0f force models\n", num(s, "frames_published"),
+              num(s, "force_models_published"));
   std::printf("tool commands    %.0f received, %.0f rejected\n", num(s, "tool_commands_received"),
               num(s, "tool_commands_rejected"));
   std::printf("haptic node      %.0f ticks at %.0f Hz; %.0f force models received\n",
@@ -160,8 +158,8 @@ int Demo(int argc, char** argv) {
     return server_rc;
   }
   if (haptic_rc != 0) {
-    std::fprintf(stderr, "somasim-demo: the mock haptic node exited with %d (see %s)\n",
-                 haptic_rc, (out / "haptic.log").c_str());
+    std::fprintf(stderr, "somasim-demo: the mock haptic node exited with %d (see %s)\n", haptic_rc,
+                 (out / "haptic.log").c_str());
     return haptic_rc;
   }
   return 0;

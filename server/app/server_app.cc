@@ -77,8 +77,7 @@ std::string CheckToolCommand(const somasim_wire_ToolCommand& c, const Session& s
   if (*tool < 0) return "unknown tool \"" + id.substr(0, 64) + "\"";
   const Eigen::Vector3d p(c.position[0], c.position[1], c.position[2]);
   if (!p.allFinite() || p.norm() > 10.0) return "position is not finite or beyond 10 m";
-  const Eigen::Vector4d q(c.orientation[0], c.orientation[1], c.orientation[2],
-                          c.orientation[3]);
+  const Eigen::Vector4d q(c.orientation[0], c.orientation[1], c.orientation[2], c.orientation[3]);
   if (!q.allFinite() || std::abs(q.norm() - 1.0) > 1e-3) {
     return "orientation is not a unit quaternion";
   }
@@ -107,6 +106,8 @@ const char* EventText(SessionEventRecord::Kind kind) {
       return "step rejected";
     case SessionEventRecord::Kind::kForceModelRefused:
       return "force model refused";
+    case SessionEventRecord::Kind::kReset:
+      return "reset";
   }
   return "event";
 }
@@ -207,10 +208,12 @@ class Server {
     r["ticks"] = session_.ticks();
     r["organ_steps"] = session_.organ_steps();
     r["rejected_steps"] = session_.rejected_steps();
-    r["step_time_us"] = {{"p50", total_.Quantile(0.5)},
-                         {"p90", total_.Quantile(0.9)},
-                         {"p99", total_.Quantile(0.99)},
-                         {"max", total_.max()}};
+    r["step_time_us"] = {
+        {"mean", total_.count() > 0 ? total_sum_us_ / static_cast<double>(total_.count()) : 0.0},
+        {"p50", total_.Quantile(0.5)},
+        {"p90", total_.Quantile(0.9)},
+        {"p99", total_.Quantile(0.99)},
+        {"max", total_.max()}};
     r["frames_published"] = frames_published_;
     r["force_models_published"] = shared_.force_models.load();
     r["tool_commands_received"] = shared_.commands_received.load();
@@ -224,12 +227,12 @@ class Server {
     nlohmann::ordered_json tools = nlohmann::ordered_json::array();
     for (int32_t t = 0; t < session_.num_tools(); ++t) {
       const ToolStats& s = tool_stats_[static_cast<size_t>(t)];
-      tools.push_back({{"id", session_.tool(t).id},
-                       {"contact_time_s", s.contact_time},
-                       {"max_force_n", s.max_force},
-                       {"mean_force_in_contact_n",
-                        s.contact_time > 0.0 ? s.force_sum / s.contact_time : 0.0},
-                       {"grasps", s.grasps}});
+      tools.push_back(
+          {{"id", session_.tool(t).id},
+           {"contact_time_s", s.contact_time},
+           {"max_force_n", s.max_force},
+           {"mean_force_in_contact_n", s.contact_time > 0.0 ? s.force_sum / s.contact_time : 0.0},
+           {"grasps", s.grasps}});
     }
     r["tools"] = tools;
     return r;
@@ -340,7 +343,7 @@ class Server {
       if (shared_.reset.exchange(false)) {
         session_.Reset();
         paced_start = Clock::now();
-        shared_.events.Push({SessionEventRecord::Kind::kContactEnds, 0.0, -2, -2, 0});
+        for (const SessionEventRecord& e : session_.TakeEvents()) shared_.events.Push(e);
       }
       if (shared_.paused.load()) {
         const Clock::time_point before = Clock::now();
@@ -354,6 +357,7 @@ class Server {
       const double us = std::chrono::duration<double, std::micro>(t1 - t0).count();
       window_.Add(us);
       total_.Add(us);
+      total_sum_us_ += us;
       ++window_steps;
       shared_.steps = session_.organ_steps();
       shared_.rejected_steps = session_.rejected_steps();
@@ -439,9 +443,9 @@ class Server {
       const contact::LocalForceModel& m = tool.force_model;
       ToolStats& stats = tool_stats_[static_cast<size_t>(t)];
       if (m.in_contact || m.grasping) {
-        const double f = contact::EvaluateLocalForceModel(m, tool.command.pose.tip,
-                                                          Eigen::Vector3d::Zero())
-                             .force.norm();
+        const double f =
+            contact::EvaluateLocalForceModel(m, tool.command.pose.tip, Eigen::Vector3d::Zero())
+                .force.norm();
         stats.contact_time += dt;
         stats.force_sum += f * dt;
         stats.max_force = std::max(stats.max_force, f);
@@ -513,8 +517,9 @@ class Server {
       TakeInstructorCommands();
       const Clock::time_point wake = std::min({next_frame, next_heartbeat, next_metrics});
       now = Clock::now();
-      if (wake > now) std::this_thread::sleep_for(std::min<Clock::duration>(
-                          wake - now, std::chrono::milliseconds(5)));
+      if (wake > now)
+        std::this_thread::sleep_for(
+            std::min<Clock::duration>(wake - now, std::chrono::milliseconds(5)));
     }
     SessionEventRecord e;
     while (shared_.events.Pop(&e)) PublishSessionEvent(e);
@@ -541,7 +546,6 @@ class Server {
   }
 
  private:
-
   void PublishFrames() {
     for (size_t k = 0; k < encoders_.size(); ++k) {
       SnapshotBuffer& snapshot = *snapshots_[k];
@@ -557,6 +561,9 @@ class Server {
       f.sim_time = snapshot.time();
       f.topology_version = 1;
       f.num_nodes = v.num_nodes;
+      f.sender_time_ns =
+          std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch())
+              .count();
       f.indices._buffer = const_cast<uint32_t*>(v.indices.data());
       f.indices._length = f.indices._maximum = static_cast<uint32_t>(v.indices.size());
       f.positions._buffer = const_cast<float*>(v.positions.data());
@@ -586,8 +593,10 @@ class Server {
     metrics_writer_->TryWrite(m);
     if (options_.verbose) {
       Log(LogLevel::kInfo, "metrics",
-          {{"sim_time", m.sim_time}, {"step_p50_us", m.step_p50_us},
-           {"step_p99_us", m.step_p99_us}, {"rate_hz", m.physics_rate_hz},
+          {{"sim_time", m.sim_time},
+           {"step_p50_us", m.step_p50_us},
+           {"step_p99_us", m.step_p99_us},
+           {"rate_hz", m.physics_rate_hz},
            {"frames", m.frames_published}});
     }
   }
@@ -595,7 +604,7 @@ class Server {
   void PublishSessionEvent(const SessionEventRecord& e) {
     std::string subject;
     std::string text = EventText(e.kind);
-    if (e.tool == -2) {
+    if (e.kind == SessionEventRecord::Kind::kReset) {
       PublishEvent(0, "", "session reset to rest by an instructor");
       return;
     }
@@ -619,42 +628,42 @@ class Server {
     }
     ++event_counts_[EventText(e.kind)];
     const uint32_t kind = static_cast<uint32_t>(e.kind);
-    PublishEvent(e.kind == SessionEventRecord::Kind::kForceModelRefused ? 1 : kind, subject,
-                 text);
+    PublishEvent(e.kind == SessionEventRecord::Kind::kForceModelRefused ? 1 : kind, subject, text);
   }
 
   void TakeInstructorCommands() {
-    instructor_reader_->Take([this](const somasim_wire_InstructorCommand& c,
-                                    const dds_sample_info_t&) {
-      ++shared_.instructor_received;
-      const std::string who = c.instructor == nullptr ? "" : c.instructor;
-      const std::string text = c.text == nullptr ? "" : c.text;
-      if (c.format_version != dds::kWireFormatVersion) {
-        Log(LogLevel::kWarning, "instructor_command_dropped",
-            {{"reason", "format_version " + std::to_string(c.format_version)}});
-        return;
-      }
-      switch (c.kind) {
-        case 1:
-          shared_.paused = true;
-          PublishEvent(8, who, "paused by instructor " + who);
-          break;
-        case 2:
-          shared_.paused = false;
-          PublishEvent(9, who, "resumed by instructor " + who);
-          break;
-        case 3:
-          shared_.reset = true;
-          break;
-        case 4:
-          PublishEvent(10, who, text);
-          break;
-        default:
-          PublishEvent(1, who, "instructor command " + std::to_string(c.kind) +
-                                   " is not supported; ignored");
-          break;
-      }
-    });
+    instructor_reader_->Take(
+        [this](const somasim_wire_InstructorCommand& c, const dds_sample_info_t&) {
+          ++shared_.instructor_received;
+          const std::string who = c.instructor == nullptr ? "" : c.instructor;
+          const std::string text = c.text == nullptr ? "" : c.text;
+          if (c.format_version != dds::kWireFormatVersion) {
+            Log(LogLevel::kWarning, "instructor_command_dropped",
+                {{"reason", "format_version " + std::to_string(c.format_version)}});
+            return;
+          }
+          switch (c.kind) {
+            case 1:
+              shared_.paused = true;
+              PublishEvent(8, who, "paused by instructor " + who);
+              break;
+            case 2:
+              shared_.paused = false;
+              PublishEvent(9, who, "resumed by instructor " + who);
+              break;
+            case 3:
+              shared_.reset = true;
+              break;
+            case 4:
+              PublishEvent(10, who, text);
+              break;
+            default:
+              PublishEvent(
+                  1, who,
+                  "instructor command " + std::to_string(c.kind) + " is not supported; ignored");
+              break;
+          }
+        });
   }
 
   const ServerOptions& options_;
@@ -681,6 +690,7 @@ class Server {
   Shared shared_;
   StepTimeHistogram window_;
   StepTimeHistogram total_;
+  double total_sum_us_ = 0.0;
   Clock::time_point start_ = Clock::now();
   double wall_time_ = 0.0;
   uint64_t heartbeat_seq_ = 0;
@@ -816,14 +826,14 @@ int ServerMain(int argc, char** argv) {
     return kExitDds;
   }
   Log(LogLevel::kInfo, "stopped",
-      {{"signal", app::StopSignal()}, {"sim_time", report["sim_time_s"]},
+      {{"signal", app::StopSignal()},
+       {"sim_time", report["sim_time_s"]},
        {"organ_steps", report["organ_steps"]}});
   if (!options.report.empty()) {
     std::ofstream out(options.report);
     out << report.dump(2) << "\n";
     if (!out) {
-      std::fprintf(stderr, "somasim-server: cannot write the report %s\n",
-                   options.report.c_str());
+      std::fprintf(stderr, "somasim-server: cannot write the report %s\n", options.report.c_str());
       return kExitIo;
     }
   }

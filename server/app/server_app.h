@@ -24,18 +24,18 @@ inline constexpr int kExitBug = 70;
 struct ServerOptions {
   std::string scene = "builtin:liver";  // a .scene.txtpb file or builtin:NAME
   std::string session = "default";      // the DDS partition
-  bool headless = true;                  // the server never opens a window (accepted for clarity)
-  double duration = 0.0;                 // [s] of session time; 0 = until SIGINT/SIGTERM
-  uint32_t domain = 0;                   // DDS domain id
-  std::string dds_config;                // Cyclone XML file; "" = CYCLONEDDS_URI or defaults
-  double frame_rate = 60.0;              // [Hz] mesh frames
-  uint32_t keyframe_interval = 30;       // a keyframe every this many frames (0.5 s at 60 Hz)
-  bool realtime = true;                  // pace session time to the wall clock
-  std::string report;                    // JSON report written at the end ("" = none)
+  bool headless = true;                 // the server never opens a window (accepted for clarity)
+  double duration = 0.0;                // [s] of session time; 0 = until SIGINT/SIGTERM
+  uint32_t domain = 0;                  // DDS domain id
+  std::string dds_config;               // Cyclone XML file; "" = CYCLONEDDS_URI or defaults
+  double frame_rate = 60.0;             // [Hz] mesh frames
+  uint32_t keyframe_interval = 30;      // a keyframe every this many frames (0.5 s at 60 Hz)
+  bool realtime = true;                 // pace session time to the wall clock
+  std::string report;                   // JSON report written at the end ("" = none)
   // At the end, each organ's last published frame: DIR/<organ>.f32 (3 × num_nodes float32, the
   // exact values a subscriber holds) and DIR/<organ>.frame (its frame number, text).
   std::string dump_final;
-  int rt_priority = 0;                   // SCHED_FIFO priority of the physics thread; 0 = normal
+  int rt_priority = 0;  // SCHED_FIFO priority of the physics thread; 0 = normal
   bool verbose = false;
 };
 

@@ -42,8 +42,8 @@ class SnapshotBuffer {
   static constexpr int kFresh = 4;
   std::array<std::vector<double>, 3> buffers_;
   std::array<double, 3> times_{};
-  int back_ = 0;               // the writer's
-  int front_ = 2;              // the reader's
+  int back_ = 0;                // the writer's
+  int front_ = 2;               // the reader's
   std::atomic<int> middle_{1};  // the one in between, with kFresh when unread
 };
 

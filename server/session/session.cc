@@ -86,11 +86,9 @@ Session::Session(const scene::Scene& scene, const scene::SceneLines& lines,
     auto o = std::make_unique<SessionOrgan>();
     o->built = solve::BuildOrgan(scene, k, lines, scene_dir);
     o->state = o->built.model->MakeState();
-    o->surface =
-        std::make_unique<contact::OrganSurface>(o->state->positions, o->built.triangles);
+    o->surface = std::make_unique<contact::OrganSurface>(o->state->positions, o->built.triangles);
     if (o->built.fem != nullptr && !o->built.fixed_nodes.empty()) {
-      o->compliance =
-          std::make_unique<contact::FemCompliance>(*o->built.fem, o->built.fixed_nodes);
+      o->compliance = std::make_unique<contact::FemCompliance>(*o->built.fem, o->built.fixed_nodes);
       // Every surface node's compliance now, so that the first touch costs the physics nothing.
       std::vector<int32_t> surface_nodes(o->built.triangles.data(),
                                          o->built.triangles.data() + o->built.triangles.size());
@@ -130,6 +128,8 @@ Session::Session(const scene::Scene& scene, const scene::SceneLines& lines,
     const Eigen::Vector3d centre(r.sphere().center().x(), r.sphere().center().y(),
                                  r.sphere().center().z());
     rigid->sphere = std::make_unique<contact::RigidSphere>(settings, centre);
+    rigid->settings = settings;
+    rigid->start = centre;
     double best = std::numeric_limits<double>::infinity();
     for (size_t k = 0; k < organs_.size(); ++k) {
       const mesh::BoundingBox box = mesh::ComputeBoundingBox(organs_[k]->state->positions);
@@ -233,6 +233,12 @@ void Session::StepOrgan(int32_t k) {
   o.time += o.built.dt;
   ++organ_steps_;
   if (status != models::StepStatus::kOk) {
+    if (status != models::StepStatus::kBadInput) {
+      // The model restored its last good state. Started again from it with the same inputs, the
+      // step would diverge again, and the organ would freeze: take its kinetic energy out, so
+      // the next step starts at rest where the last good one ended.
+      o.state->velocities.setZero();
+    }
     ++o.rejected_steps;
     ++rejected_steps_;
     Emit(SessionEventRecord::Kind::kStepRejected, k, -1, static_cast<int32_t>(status));
@@ -266,8 +272,10 @@ void Session::UpdateForceModel(int32_t t) {
     if (tool.contacts[static_cast<size_t>(k)]->proxy().in_contact()) chosen = k;
   }
   const uint64_t sequence = tool.force_model.sequence + 1;
-  const bool touching = chosen >= 0 && tool.contacts[static_cast<size_t>(chosen)]->proxy().in_contact();
-  const bool grasping = chosen >= 0 && tool.contacts[static_cast<size_t>(chosen)]->grasp().holding();
+  const bool touching =
+      chosen >= 0 && tool.contacts[static_cast<size_t>(chosen)]->proxy().in_contact();
+  const bool grasping =
+      chosen >= 0 && tool.contacts[static_cast<size_t>(chosen)]->grasp().holding();
   contact::LocalForceModel model;
   model.damping = tool.force_model.damping;
   model.force_limit = tool.force_model.force_limit;
@@ -320,8 +328,10 @@ void Session::Reset() {
     tool->was_grasping = false;
     tool->force_organ = -1;
   }
+  for (auto& r : rigid_) r->sphere = std::make_unique<contact::RigidSphere>(r->settings, r->start);
   time_ = 0.0;
   ticks_ = 0;
+  Emit(SessionEventRecord::Kind::kReset, -1, -1, 0);
 }
 
 }  // namespace somasim::server

@@ -9,6 +9,8 @@
 // Tools act on every organ: one contact (god-object proxy and grasp) per tool and organ. The
 // local force model of a tool comes from the organ it grasps, else the one it touches (the
 // first in the scene's order), else says "no contact".
+// A step a model rejects (it diverged: SPEC §7) leaves the organ at its last good state, at rest
+// (velocities zeroed, so the next step does not repeat the divergence), and is reported.
 // Rigid bodies (spheres) lie in the organ whose bounding box holds their centre at start-up (the
 // nearest organ otherwise) and meet the tool whose tip is nearest to them.
 #pragma once
@@ -40,6 +42,7 @@ struct SessionEventRecord {
     kContactEnds = 6,
     kStepRejected = 7,
     kForceModelRefused = 15,  // the contact gave a model MakeLocalForceModel refused
+    kReset = 16,              // every organ back to rest (Session::Reset)
   };
   Kind kind = Kind::kGrasp;
   double sim_time = 0.0;  // [s]
@@ -70,7 +73,7 @@ struct SessionTool {
   std::string id;
   contact::ToolShape shape;
   ToolCommandInput command;
-  bool commanded = false;  // a command has arrived
+  bool commanded = false;                                       // a command has arrived
   std::vector<std::unique_ptr<contact::ToolContact>> contacts;  // one per organ (none: camera)
   contact::LocalForceModel force_model;
   int32_t force_organ = -1;  // the organ the force model comes from, or -1
@@ -81,6 +84,8 @@ struct SessionTool {
 struct SessionRigid {
   std::string id;
   std::unique_ptr<contact::RigidSphere> sphere;
+  contact::RigidSphereSettings settings;
+  Eigen::Vector3d start = Eigen::Vector3d::Zero();  // [m] where the scene puts its centre
   int32_t organ = -1;  // the organ it lies in (-1: none, it only falls and meets tools)
 };
 
@@ -99,7 +104,8 @@ class Session {
   void Step();
   // Sets what tool `tool` (0 .. num_tools-1) does from the next tick on.
   void SetToolCommand(int32_t tool, const ToolCommandInput& command);
-  // Every organ back to rest, tools' contacts and grasps forgotten, time 0.
+  // Every organ back to rest, rigid bodies back where the scene puts them, tools' contacts and
+  // grasps forgotten, time 0; emits kReset. Allocates (not for the physics path).
   void Reset();
 
   double time() const { return time_; }  // [s]

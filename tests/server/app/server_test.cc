@@ -25,9 +25,10 @@ using Clock = std::chrono::steady_clock;
 
 std::vector<std::string> ServerArgs(const std::string& scene, const std::string& session,
                                     uint32_t domain, std::vector<std::string> extra = {}) {
-  std::vector<std::string> args{"--scene",  scene,  "--session",    session,
-                                "--domain", std::to_string(domain), "--dds-config",
-                                LoopbackConfigFile()};
+  std::vector<std::string> args{"--scene",      scene,
+                                "--session",    session,
+                                "--domain",     std::to_string(domain),
+                                "--dds-config", LoopbackConfigFile()};
   args.insert(args.end(), extra.begin(), extra.end());
   return args;
 }
@@ -56,10 +57,10 @@ somasim_wire_ToolCommand Pressing(double t, uint64_t seq) {
 
 TEST(ServerOverDds, LateAndLossySubscribersConvergeToTheServersFloatsBitForBit) {
   const std::string dir = TempDir("late");
-  auto server = StartProgram(
-      "somasim-server",
-      ServerArgs("builtin:kidney424", "late", 140, {"--dump-final", dir + "/final"}),
-      dir + "/server.log");
+  auto server =
+      StartProgram("somasim-server",
+                   ServerArgs("builtin:kidney424", "late", 140, {"--dump-final", dir + "/final"}),
+                   dir + "/server.log");
   SessionClient all(140, "late");
   SessionClient lossy(140, "late");
   lossy.DropFrames(0.3, 7);
@@ -151,10 +152,9 @@ TEST(ServerOverDds, LateAndLossySubscribersConvergeToTheServersFloatsBitForBit) 
 
 TEST(ServerOverDds, BadToolCommandsAreDroppedAndCounted) {
   const std::string dir = TempDir("bad_commands");
-  auto server =
-      StartProgram("somasim-server",
-                   ServerArgs("builtin:kidney424", "bad", 141, {"--report", dir + "/r.json"}),
-                   dir + "/server.log");
+  auto server = StartProgram(
+      "somasim-server", ServerArgs("builtin:kidney424", "bad", 141, {"--report", dir + "/r.json"}),
+      dir + "/server.log");
   SessionClient c(141, "bad");
   ASSERT_TRUE(c.PollUntil([&] { return c.heartbeats() > 0; }, seconds(30)));
   std::this_thread::sleep_for(milliseconds(300));  // the server's reader has matched ours
@@ -175,7 +175,7 @@ TEST(ServerOverDds, BadToolCommandsAreDroppedAndCounted) {
   commands.push_back(ToolCommandAt("", 0, 0, 0.05, 7));  // empty id
   const std::string long_id(300, 'x');
   commands.push_back(ToolCommandAt(long_id.c_str(), 0, 0, 0.05, 8));  // no such tool
-  auto far = ToolCommandAt("scalpel", 0, 0, 1e6, 9);  // beyond 10 m
+  auto far = ToolCommandAt("scalpel", 0, 0, 1e6, 9);                  // beyond 10 m
   commands.push_back(far);
   for (const auto& command : commands) {
     c.SendToolCommand(command);
@@ -197,12 +197,12 @@ TEST(ServerOverDds, BadToolCommandsAreDroppedAndCounted) {
 
 TEST(ServerOverDds, TwoSessionsInDifferentPartitionsNeverSeeEachOther) {
   const std::string dir = TempDir("partitions");
-  auto a = StartProgram("somasim-server",
-                        ServerArgs("builtin:tissue45", "ward-a", 142, {"--report", dir + "/a.json"}),
-                        dir + "/a.log");
-  auto b = StartProgram("somasim-server",
-                        ServerArgs("builtin:tissue45", "ward-b", 142, {"--report", dir + "/b.json"}),
-                        dir + "/b.log");
+  auto a = StartProgram(
+      "somasim-server",
+      ServerArgs("builtin:tissue45", "ward-a", 142, {"--report", dir + "/a.json"}), dir + "/a.log");
+  auto b = StartProgram(
+      "somasim-server",
+      ServerArgs("builtin:tissue45", "ward-b", 142, {"--report", dir + "/b.json"}), dir + "/b.log");
   SessionClient ca(142, "ward-a");
   SessionClient cb(142, "ward-b");
   ASSERT_TRUE(ca.PollUntil(
@@ -244,8 +244,8 @@ TEST(ServerOverDds, KillingTheServerIsNoticedByTheMockNodeWithinTheLease) {
   auto mock = StartProgram(
       "somasim-haptic",
       {"--device", "mock", "--script", std::string(SOMASIM_SCRIPTS_DIR) + "/palpate.txt",
-       "--session", "ks", "--domain", "143", "--dds-config", LoopbackConfigFile(),
-       "--wait-server", "30", "--report", dir + "/haptic.json"},
+       "--session", "ks", "--domain", "143", "--dds-config", LoopbackConfigFile(), "--wait-server",
+       "30", "--report", dir + "/haptic.json"},
       dir + "/haptic.log");
   const Clock::time_point wait = Clock::now();
   while (ReadText(dir + "/haptic.log").find("server_found") == std::string::npos) {
@@ -259,10 +259,10 @@ TEST(ServerOverDds, KillingTheServerIsNoticedByTheMockNodeWithinTheLease) {
   const nlohmann::json r = ReadJson(dir + "/haptic.json");
   ASSERT_TRUE(r["server_lost"].get<bool>());
   const double after_ms =
-      1e-6 * static_cast<double>(r["server_lost_monotonic_ns"].get<int64_t>() -
-                                 std::chrono::duration_cast<std::chrono::nanoseconds>(
-                                     killed.time_since_epoch())
-                                     .count());
+      1e-6 *
+      static_cast<double>(
+          r["server_lost_monotonic_ns"].get<int64_t>() -
+          std::chrono::duration_cast<std::chrono::nanoseconds>(killed.time_since_epoch()).count());
   // The lease is 500 ms from the last heartbeat (sent every 100 ms before the kill).
   EXPECT_LE(after_ms, 550.0);
   EXPECT_GE(after_ms, 350.0);
@@ -273,12 +273,12 @@ TEST(ServerOverDds, KillingTheMockNodeDoesNotDisturbTheServer) {
   const std::string dir = TempDir("kill_mock");
   auto server = StartProgram("somasim-server", ServerArgs("builtin:kidney424", "km", 144),
                              dir + "/server.log");
-  auto mock = StartProgram(
-      "somasim-haptic",
-      {"--device", "mock", "--script", std::string(SOMASIM_SCRIPTS_DIR) + "/palpate.txt",
-       "--session", "km", "--domain", "144", "--dds-config", LoopbackConfigFile(),
-       "--wait-server", "30"},
-      dir + "/haptic.log");
+  auto mock =
+      StartProgram("somasim-haptic",
+                   {"--device", "mock", "--script",
+                    std::string(SOMASIM_SCRIPTS_DIR) + "/palpate.txt", "--session", "km",
+                    "--domain", "144", "--dds-config", LoopbackConfigFile(), "--wait-server", "30"},
+                   dir + "/haptic.log");
   SessionClient c(144, "km");
   ASSERT_TRUE(c.PollUntil([&] { return c.metrics().size() >= 3; }, seconds(40)));
   const size_t before = c.metrics().size();
@@ -334,7 +334,7 @@ TEST(ServerOverDds, ASceneWithTwoOrgansAndARigidBodyRuns) {
   EXPECT_EQ(r["rejected_steps"], 0);
 }
 
-TEST(ServerOverDds, InstructorPauseHoldsTheSessionAndResumeGoesOn) {
+TEST(ServerOverDds, InstructorPauseHoldsTheSessionResumeGoesOnAndResetRestarts) {
   const std::string dir = TempDir("pause");
   auto server = StartProgram("somasim-server", ServerArgs("builtin:tissue45", "pause", 146),
                              dir + "/server.log");
@@ -348,8 +348,8 @@ TEST(ServerOverDds, InstructorPauseHoldsTheSessionAndResumeGoesOn) {
   c.PollUntil([] { return false; }, milliseconds(400));
   EXPECT_EQ(c.last_sim_time(), paused_at);
   c.SendInstructorCommand(2, "");
-  ASSERT_TRUE(c.PollUntil([&] { return c.last_state() == 2 && c.last_sim_time() > paused_at + 0.1; },
-                          seconds(5)));
+  ASSERT_TRUE(c.PollUntil(
+      [&] { return c.last_state() == 2 && c.last_sim_time() > paused_at + 0.1; }, seconds(5)));
   c.SendInstructorCommand(4, "watch the tip");
   const auto has = [&c](const std::string& text) {
     for (const std::string& e : c.event_texts()) {
@@ -361,6 +361,11 @@ TEST(ServerOverDds, InstructorPauseHoldsTheSessionAndResumeGoesOn) {
   EXPECT_TRUE(has("paused by instructor instructor-test"));
   EXPECT_TRUE(has("resumed by instructor instructor-test"));
   EXPECT_TRUE(has("session starts"));  // the event history reaches a client that joined later
+  // Reset: back to rest and time 0.
+  const double before_reset = c.last_sim_time();
+  c.SendInstructorCommand(3, "");
+  EXPECT_TRUE(c.PollUntil([&] { return has("session reset to rest"); }, seconds(5)));
+  EXPECT_TRUE(c.PollUntil([&] { return c.last_sim_time() < before_reset; }, seconds(5)));
   server->Signal(SIGINT);
   EXPECT_EQ(server->Wait(seconds(10)), 0);
 }
@@ -403,10 +408,10 @@ TEST(MockHapticCommandLine, RefusesBadOptionsAndScriptsAndWaitsForAServer) {
   EXPECT_EQ(bad.status, 3);
   EXPECT_NE(bad.out.find("bad.txt:3"), std::string::npos) << bad.out;
   EXPECT_EQ(RunProgram("somasim-haptic", "--script " + dir + "/missing.txt").status, 4);
-  const ToolRun none = RunProgram(
-      "somasim-haptic", "--script " + std::string(SOMASIM_SCRIPTS_DIR) +
-                            "/palpate.txt --session nobody --domain 147 --dds-config " +
-                            LoopbackConfigFile() + " --wait-server 0.5");
+  const ToolRun none =
+      RunProgram("somasim-haptic", "--script " + std::string(SOMASIM_SCRIPTS_DIR) +
+                                       "/palpate.txt --session nobody --domain 147 --dds-config " +
+                                       LoopbackConfigFile() + " --wait-server 0.5");
   EXPECT_EQ(none.status, 6);
   EXPECT_NE(none.out.find("no_server"), std::string::npos);
 }
@@ -414,10 +419,10 @@ TEST(MockHapticCommandLine, RefusesBadOptionsAndScriptsAndWaitsForAServer) {
 TEST(Demo, PalpatingTheLiverRendersForcesAndReportsThem) {
   if (kUnderSanitizer) GTEST_SKIP() << "the 4055-node liver: run in the Release build";
   const std::string dir = TempDir("demo");
-  const ToolRun run = RunProgram(
-      "somasim-demo", "--duration 7 --script " + std::string(SOMASIM_SCRIPTS_DIR) +
-                          "/palpate.txt --out " + dir + " --domain 148 --dds-config " +
-                          LoopbackConfigFile());
+  const ToolRun run =
+      RunProgram("somasim-demo", "--duration 7 --script " + std::string(SOMASIM_SCRIPTS_DIR) +
+                                     "/palpate.txt --out " + dir + " --domain 148 --dds-config " +
+                                     LoopbackConfigFile());
   ASSERT_EQ(run.status, 0) << run.out << ReadText(dir + "/server.log")
                            << ReadText(dir + "/haptic.log");
   EXPECT_NE(run.out.find("somasim demo summary"), std::string::npos);

@@ -39,8 +39,8 @@ std::string BinPath(const std::string& program) {
 }
 
 std::string TempDir(const std::string& name) {
-  const std::filesystem::path dir = std::filesystem::temp_directory_path() /
-                                    ("somasim-test-" + std::to_string(getpid())) / name;
+  const std::filesystem::path dir =
+      std::filesystem::temp_directory_path() / ("somasim-test-" + std::to_string(getpid())) / name;
   std::filesystem::create_directories(dir);
   return dir.string();
 }
@@ -74,8 +74,8 @@ SessionClient::SessionClient(uint32_t domain, const std::string& session) {
       *participant_, topics_->heartbeat, dds::HeartbeatQos(session));
   metrics_reader_ = std::make_unique<dds::Reader<somasim_wire_ServerMetrics>>(
       *participant_, topics_->metrics, dds::MetricsQos(session));
-  events_ = std::make_unique<dds::Reader<somasim_wire_SessionEvent>>(
-      *participant_, topics_->event, dds::EventQos(session));
+  events_ = std::make_unique<dds::Reader<somasim_wire_SessionEvent>>(*participant_, topics_->event,
+                                                                     dds::EventQos(session));
   force_ = std::make_unique<dds::Reader<somasim_wire_ForceModel>>(
       *participant_, topics_->force_model, dds::ForceModelQos(session));
   commands_ = std::make_unique<dds::Writer<somasim_wire_ToolCommand>>(
@@ -131,8 +131,8 @@ void SessionClient::OnFrame(const somasim_wire_MeshFrame& f) {
   if (it == organs_.end() || !it->second.decoder) return;  // no topology yet
   OrganView& o = it->second;
   ++o.frames_received;
-  if (drop_fraction_ > 0.0 && std::uniform_real_distribution<double>(0.0, 1.0)(rng_) <
-                                  drop_fraction_) {
+  if (drop_fraction_ > 0.0 &&
+      std::uniform_real_distribution<double>(0.0, 1.0)(rng_) < drop_fraction_) {
     ++o.frames_dropped_on_purpose;
     return;
   }

@@ -68,8 +68,8 @@ TEST(Session, PressingTheProbeGivesContactEventsAndAPushingForceModel) {
   EXPECT_EQ(session.tool(0).force_organ, 0);
   EXPECT_EQ(m.sequence, 41u);
   EXPECT_GT(m.contact_stiffness, 0.0);
-  const contact::ForceSample f =
-      contact::EvaluateLocalForceModel(m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
+  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+      m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
   EXPECT_GT(f.force.z(), 0.1);  // the tissue pushes the probe up [N]
   EXPECT_EQ(session.organ_steps(), 41u);
   EXPECT_EQ(session.rejected_steps(), 0u);
@@ -109,15 +109,15 @@ TEST(Session, GraspingAndPullingLiftsTheTissueAndReleaseLetsGo) {
   }
   ASSERT_TRUE(grasped);
   for (int i = 0; i < 50; ++i) {
-    session.SetToolCommand(g, At(top + (0.005 * i / 50.0 - 0.001) * Eigen::Vector3d::UnitZ(), 0.0,
-                                 ++seq));
+    session.SetToolCommand(
+        g, At(top + (0.005 * i / 50.0 - 0.001) * Eigen::Vector3d::UnitZ(), 0.0, ++seq));
     session.Step();
   }
   const contact::LocalForceModel& m = session.tool(g).force_model;
   EXPECT_TRUE(m.grasping);
   const contact::ForceSample f = contact::EvaluateLocalForceModel(
       m, session.tool(g).command.pose.tip, Eigen::Vector3d::Zero());
-  EXPECT_LT(f.force.z(), -0.05);  // the tissue pulls the jaws down [N]
+  EXPECT_LT(f.force.z(), -0.05);                      // the tissue pulls the jaws down [N]
   EXPECT_GT(TopOf(session, 0).z(), top.z() + 0.001);  // and is lifted
   session.SetToolCommand(g, At(top + 0.004 * Eigen::Vector3d::UnitZ(), 1.0, ++seq));
   session.Step();
@@ -188,9 +188,42 @@ TEST(Session, ResetReturnsToRestAndTimeZero) {
   const mesh::Points rest = session.organ(0).state->positions;
   for (int i = 0; i < 20; ++i) session.Step();
   EXPECT_GT((session.organ(0).state->positions - rest).norm(), 0.0);
+  (void)session.TakeEvents();
   session.Reset();
+  const auto events = session.TakeEvents();
+  ASSERT_EQ(events.size(), 1u);
+  EXPECT_EQ(events[0].kind, SessionEventRecord::Kind::kReset);
   EXPECT_EQ(session.time(), 0.0);
   EXPECT_EQ((session.organ(0).state->positions - rest).norm(), 0.0);
+}
+
+}  // namespace
+}  // namespace somasim::server
+
+namespace somasim::server {
+namespace {
+
+TEST(Session, ARejectedStepLeavesTheOrganAtRestAndIsReported) {
+  // An explicit mass-spring patch at 50 ms: far beyond its stable step, so it diverges.
+  scene::Scene s = scene::DefaultScene("tissue45");
+  s.clear_analysis();
+  s.mutable_organ(0)->mutable_model()->mutable_mass_spring()->set_implicit(false);
+  s.mutable_organ(0)->mutable_model()->set_dt(0.05);
+  s.mutable_organ(0)->mutable_material()->set_youngs_modulus(5e6);
+  Session session(s, scene::SceneLines("unstable"), ".");
+  int rejected = 0;
+  for (int i = 0; i < 40; ++i) {
+    session.Step();
+    for (const SessionEventRecord& e : session.TakeEvents()) {
+      if (e.kind != SessionEventRecord::Kind::kStepRejected) continue;
+      ++rejected;
+      EXPECT_EQ(e.organ, 0);
+      EXPECT_EQ(session.organ(0).state->velocities.norm(), 0.0);
+    }
+    ASSERT_TRUE(session.organ(0).state->positions.allFinite());
+  }
+  EXPECT_GT(rejected, 0);
+  EXPECT_EQ(session.rejected_steps(), static_cast<uint64_t>(rejected));
 }
 
 }  // namespace
