@@ -11,6 +11,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <exception>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -188,8 +189,22 @@ class Server {
     Heartbeat(2);
     PublishEvent(11, "", "session starts: " + session_.scene().name());
     start_ = Clock::now();
-    std::thread publisher([this] { PublisherLoop(); });
-    PhysicsLoop();
+    std::thread publisher([this] {
+      try {
+        PublisherLoop();
+      } catch (const std::exception& e) {
+        // A DDS failure while publishing: stop the session cleanly rather than abort.
+        Log(LogLevel::kError, "publisher_failed", {{"error", e.what()}});
+        app::RequestStop();
+      }
+    });
+    try {
+      PhysicsLoop();
+    } catch (...) {
+      shared_.done = true;
+      publisher.join();
+      throw;
+    }
     shared_.done = true;
     publisher.join();
     Heartbeat(4);

@@ -25,7 +25,7 @@ dds::Domain& DomainFor(uint32_t id) {
 }  // namespace
 
 std::string LoopbackConfigFile() {
-  const std::string path = TempDir("dds") + "/loopback.xml";
+  std::string path = TempDir("dds") + "/loopback.xml";
   std::ofstream(path) << dds::LoopbackConfig();
   return path;
 }
