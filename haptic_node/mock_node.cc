@@ -15,7 +15,7 @@
 #include "common/app/signals.h"
 #include "common/dds/topics.h"
 #include "haptic_node/mock_script.h"
-#include "server/contact/local_force_model.h"
+#include "server/contact/force_model_wire.h"
 
 #ifndef SOMASIM_VERSION
 #define SOMASIM_VERSION "0.0.0"
@@ -34,32 +34,6 @@ constexpr auto kRamp = std::chrono::milliseconds(50);   // ... to zero 60 ms aft
 double Seconds(Clock::duration d) { return std::chrono::duration<double>(d).count(); }
 int64_t MonotonicNs(Clock::time_point t) {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(t.time_since_epoch()).count();
-}
-
-// A received force model made usable, or why not.
-std::string FromWire(const somasim_wire_ForceModel& w, contact::LocalForceModel* m) {
-  if (w.format_version != dds::kWireFormatVersion) {
-    return "format_version " + std::to_string(w.format_version);
-  }
-  m->sequence = w.seq;
-  m->sim_time = w.sim_time;
-  m->in_contact = w.in_contact;
-  m->grasping = w.grasping;
-  for (int i = 0; i < 3; ++i) {
-    m->contact_point[i] = w.contact_point[i];
-    m->normal[i] = w.normal[i];
-    m->grasp_anchor[i] = w.grasp_anchor[i];
-    m->bias_force[i] = w.bias_force[i];
-    for (int j = 0; j < 3; ++j) {
-      m->grasp_stiffness(i, j) = w.grasp_stiffness[3 * i + j];
-      m->tissue_stiffness(i, j) = w.tissue_stiffness[3 * i + j];
-    }
-  }
-  m->contact_stiffness = w.contact_stiffness;
-  m->damping = w.damping;
-  m->force_limit = w.force_limit;
-  const char* error = contact::LocalForceModelError(*m);
-  return error == nullptr ? "" : error;
 }
 
 struct ToolModel {
@@ -160,7 +134,7 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
       for (size_t k = 0; k < tools.size(); ++k) {
         if (tools[k] != id) continue;
         contact::LocalForceModel m;
-        const std::string error = FromWire(w, &m);
+        const std::string error = contact::FromWire(w, dds::kWireFormatVersion, &m);
         if (!error.empty()) {
           if (++models_rejected <= 10) {
             Log(LogLevel::kWarning, "force_model_dropped", {{"tool", id}, {"reason", error}});

@@ -25,6 +25,7 @@
 #include "common/mesh_io/mesh_error.h"
 #include "common/wire/frame_codec.h"
 #include "server/app/snapshot_buffer.h"
+#include "server/contact/force_model_wire.h"
 #include "server/session/session.h"
 
 #ifndef SOMASIM_VERSION
@@ -466,30 +467,14 @@ class Server {
         stats.max_force = std::max(stats.max_force, f);
       }
       somasim_wire_ForceModel& w = force_samples_[static_cast<size_t>(t)];
+      contact::ToWire(m, &w);
       w.tool = dds::CString(tool.id);
       w.format_version = dds::kWireFormatVersion;
       w.server_id = server_id_;
-      w.seq = m.sequence;
       w.command_seq = last_command_[static_cast<size_t>(t)];
-      w.sim_time = m.sim_time;
       w.organ = tool.force_organ >= 0
                     ? dds::CString(organ_ids_[static_cast<size_t>(tool.force_organ)])
                     : const_cast<char*>("");
-      w.in_contact = m.in_contact;
-      w.grasping = m.grasping;
-      for (int i = 0; i < 3; ++i) {
-        w.contact_point[i] = m.contact_point[i];
-        w.normal[i] = m.normal[i];
-        w.grasp_anchor[i] = m.grasp_anchor[i];
-        w.bias_force[i] = m.bias_force[i];
-        for (int j = 0; j < 3; ++j) {
-          w.grasp_stiffness[3 * i + j] = m.grasp_stiffness(i, j);
-          w.tissue_stiffness[3 * i + j] = m.tissue_stiffness(i, j);
-        }
-      }
-      w.contact_stiffness = m.contact_stiffness;
-      w.damping = m.damping;
-      w.force_limit = m.force_limit;
       if (force_writer_->TryWrite(w) == DDS_RETCODE_OK) ++shared_.force_models;
     }
   }
