@@ -41,13 +41,13 @@ class ScriptError : public std::runtime_error {
 };
 
 struct ScriptKey {
-  double time = 0.0;      // [s]
-  int32_t tool = 0;       // index into MockScript::tools()
+  double time = 0.0;                                   // [s]
+  int32_t tool = 0;                                    // index into MockScript::tools()
   Eigen::Vector3d position = Eigen::Vector3d::Zero();  // [m]
   Eigen::Quaterniond orientation = Eigen::Quaterniond::Identity();
-  double jaw = 0.0;       // [0, 1]
+  double jaw = 0.0;  // [0, 1]
   uint32_t buttons = 0;
-  int line = 0;           // where it was written
+  int line = 0;  // where it was written
 };
 
 // The tool command the script gives at time t.

@@ -9,9 +9,9 @@
 #include "common/mesh/topology.h"
 #include "server/contact/contact_pipeline.h"
 #include "server/models/fem/fem_model.h"
-#include "tests/support/sanitizer.h"
 #include "tests/server/contact/contact_test_meshes.h"
 #include "tests/support/allocation_counter.h"
+#include "tests/support/sanitizer.h"
 
 namespace somasim::contact {
 namespace {
