@@ -153,7 +153,7 @@ TEST(ServerOverDds, LateAndLossySubscribersConvergeToTheServersFloatsBitForBit) 
 TEST(ServerOverDds, BadToolCommandsAreDroppedAndCounted) {
   const std::string dir = TempDir("bad_commands");
   auto server = StartProgram(
-      "somasim-server", ServerArgs("builtin:kidney424", "bad", 141, {"--report", dir + "/r.json"}),
+      "somasim-server", ServerArgs("builtin:tissue45", "bad", 141, {"--report", dir + "/r.json"}),
       dir + "/server.log");
   SessionClient c(141, "bad");
   ASSERT_TRUE(c.PollUntil([&] { return c.heartbeats() > 0; }, seconds(30)));
@@ -179,7 +179,9 @@ TEST(ServerOverDds, BadToolCommandsAreDroppedAndCounted) {
   commands.push_back(far);
   for (const auto& command : commands) {
     c.SendToolCommand(command);
-    std::this_thread::sleep_for(milliseconds(60));  // the server takes each before the next
+    // The server takes each before the next: it drains commands every tick (1 ms on the patch;
+    // one it has not taken yet is replaced by the next for the same tool: keep-last 1).
+    std::this_thread::sleep_for(milliseconds(60));
   }
   std::this_thread::sleep_for(milliseconds(200));
   server->Signal(SIGTERM);
