@@ -309,6 +309,10 @@ void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) 
   m.NonNegative("dt", model.dt());
   m.NonNegative("solver_tolerance", model.solver_tolerance());
   if (model.solver_max_iterations() < 0) m.Fail("solver_max_iterations", "must be >= 0");
+  if (model.has_mass_spring()) {
+    m.Child("mass_spring", model.mass_spring())
+        .NonNegative("anchor_stiffness", model.mass_spring().anchor_stiffness());
+  }
   if (model.has_position_based() && model.position_based().iterations() < 0) {
     m.Child("position_based", model.position_based()).Fail("iterations", "must be >= 0");
   }
@@ -462,8 +466,12 @@ Scene DefaultScene(std::string_view organ) {
                                 "\"; built in: " + mesh_gen::BuiltinOrganNames());
   }
   const bool sheet = spec->kind == mesh_gen::OrganKind::kOpenSurface;
-  const mesh::Points rest = sheet ? mesh_gen::GenerateBuiltinOrgan(spec->name).surface.vertices
-                                  : mesh_gen::GenerateBuiltinOrganVolume(spec->name).vertices;
+  // The extent only: a closed surface's filling keeps its boundary vertices, so the surface's box
+  // is the volume's (and costs no tetrahedralisation).
+  const mesh_gen::BuiltinOrgan generated = mesh_gen::GenerateBuiltinOrgan(spec->name);
+  const mesh::Points& rest = spec->kind == mesh_gen::OrganKind::kVolume
+                                 ? generated.volume.vertices
+                                 : generated.surface.vertices;
   const mesh::BoundingBox box = mesh::ComputeBoundingBox(rest);
   const Eigen::Vector3d size = box.max - box.min;
   Scene scene;

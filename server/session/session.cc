@@ -3,15 +3,49 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <numbers>
 #include <stdexcept>
 
 #include "common/mesh/geometry.h"
+#include "common/mesh_gen/builtin_organs.h"
 
 namespace somasim::server {
 namespace {
 
 constexpr double kDefaultFemStep = 0.01;  // [s] the built-in scenes' FEM step (100 Hz)
 constexpr int kInteractiveCgIterations = 30;
+constexpr double kDefaultSurfaceStep = 0.005;  // [s] the built-in closed surfaces' step (200 Hz)
+constexpr double kSurfacePoisson = 0.45;       // [-] for the anchors' flat-punch rule
+
+// Seed 002's closed surfaces (spleen600, kidney2000, gallbladder5400) run as it runs them: an
+// implicit mass-spring shell on the surface mesh, with a zero-rest-length anchor at every node
+// (seed 001 eq. 10) standing in for the interior it does not simulate. The anchor's k_s is the
+// stiffness of the node's share of the surface pressed into a half-space of the material: a rigid
+// flat punch of radius a on an elastic half-space, k = 2 E a / (1 - ν²) (Sneddon 1965), with
+// π a² = the organ's area / its node count. gallbladder5400 (E = 19.6 kPa): a = 1.1 mm, k_s ≈ 53
+// N/m.
+void MakeShapeRetainingSurface(scene::Organ* organ, const mesh_gen::BuiltinOrganSpec& spec) {
+  const mesh::SurfaceMesh surface = mesh_gen::GenerateBuiltinOrgan(spec.name).surface;
+  double area = 0.0;  // [m²]
+  for (Eigen::Index t = 0; t < surface.triangles.cols(); ++t) {
+    const Eigen::Vector3d a = surface.vertices.col(surface.triangles(0, t));
+    const Eigen::Vector3d b = surface.vertices.col(surface.triangles(1, t));
+    const Eigen::Vector3d c = surface.vertices.col(surface.triangles(2, t));
+    area += 0.5 * (b - a).cross(c - a).norm();
+  }
+  const double node_radius =
+      std::sqrt(area / (std::numbers::pi * static_cast<double>(surface.vertices.cols())));  // [m]
+  scene::Material* m = organ->mutable_material();
+  const double anchor =
+      2.0 * m->youngs_modulus() * node_radius / (1.0 - kSurfacePoisson * kSurfacePoisson);  // [N/m]
+  scene::Model* model = organ->mutable_model();
+  model->Clear();
+  model->mutable_mass_spring()->set_implicit(true);
+  model->mutable_mass_spring()->set_anchor_stiffness(anchor);
+  model->set_dt(kDefaultSurfaceStep);
+  m->clear_poisson_ratio();
+  m->set_damping_ratio(0.5);  // settles within a few tenths of a second after a touch
+}
 
 // Capacity of an organ's per-step springs: each tool's contact (3 corners) and grasp, and each
 // rigid body's tissue contacts (3 corners per touching triangle).
@@ -51,6 +85,11 @@ scene::Scene ServerDefaultScene(std::string_view organ) {
   scene::Scene s = scene::DefaultScene(organ);
   s.clear_analysis();
   for (scene::Organ& o : *s.mutable_organ()) {
+    const mesh_gen::BuiltinOrganSpec* spec = mesh_gen::FindBuiltinOrgan(o.builtin());
+    if (spec != nullptr && spec->kind == mesh_gen::OrganKind::kClosedSurface) {
+      MakeShapeRetainingSurface(&o, *spec);
+      continue;
+    }
     if (!scene::IsFemModel(o.model())) continue;
     o.mutable_model()->set_dt(kDefaultFemStep);
     // An interactive budget: the conjugate gradients stop after 30 iterations, warm-started

@@ -113,6 +113,7 @@ std::unique_ptr<models::TissueModel> MakeParticleModel(const scene::Organ& organ
       }
       if (model.solver_tolerance() > 0.0) p.cg_tolerance = model.solver_tolerance();
       if (model.solver_max_iterations() > 0) p.cg_max_iterations = model.solver_max_iterations();
+      p.anchor_stiffness = model.mass_spring().anchor_stiffness();
       return on_volume ? models::MassSpringModel::FromTetMesh(volume, p)
                        : models::MassSpringModel::FromSurface(surface, p);
     }

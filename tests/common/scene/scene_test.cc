@@ -106,6 +106,10 @@ TEST(Scene, RefusesBadValuesNamingTheField) {
                 "organ[0].material.poisson_ratio", "(-1, 0.5)");
   ExpectRefused(Edit("radius: 0.01", "radius: 0"), 8, "organ[0].fixed[0].sphere.radius", "> 0");
   ExpectRefused(Edit("dt: 0.01", "dt: -0.01"), 6, "organ[0].model.dt", ">= 0");
+  ExpectRefused(Edit("implicit: true", "implicit: true anchor_stiffness: -5"), 14,
+                "organ[1].model.mass_spring.anchor_stiffness", ">= 0");
+  ExpectRefused(Edit("implicit: true", "implicit: true anchor_stiffness: nan"), 14,
+                "organ[1].model.mass_spring.anchor_stiffness", "finite");
   ExpectRefused(Edit("unit: \"mm\"", "unit: \"inch\""), 13, "organ[1].unit", "m, cm or mm");
   ExpectRefused(Edit("id: 3 id: 4", "id: 3 id: -4"), 19, "load[0].region.nodes.id[1]", ">= 0");
   ExpectRefused(Edit("force { z: -0.5 }", "force { z: inf }"), 20, "load[0].force", "finite");

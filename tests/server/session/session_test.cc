@@ -3,7 +3,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 
 #include "common/mesh/geometry.h"
 #include "tests/support/allocation_counter.h"
@@ -224,6 +226,55 @@ TEST(Session, ARejectedStepLeavesTheOrganAtRestAndIsReported) {
   }
   EXPECT_GT(rejected, 0);
   EXPECT_EQ(session.rejected_steps(), static_cast<uint64_t>(rejected));
+}
+
+// Seed 002's closed surfaces run in the server as it runs them: an implicit mass-spring shell with
+// every node anchored to its rest position, so the shell keeps its shape under gravity, gives way
+// under the probe with a force of the order of a palpation, and comes back when let go.
+TEST(Session, ClosedSurfaceBuiltinIsAnAnchoredShellThatHoldsItsShapeAndRecovers) {
+  const scene::Scene s = ServerDefaultScene("spleen600");
+  ASSERT_EQ(s.organ_size(), 1);
+  const scene::Model& model = s.organ(0).model();
+  ASSERT_TRUE(model.has_mass_spring());
+  EXPECT_TRUE(model.mass_spring().implicit());
+  EXPECT_GT(model.mass_spring().anchor_stiffness(), 1.0);     // [N/m]
+  EXPECT_LT(model.mass_spring().anchor_stiffness(), 1000.0);  // soft tissue, not steel
+  Session session(s, scene::SceneLines("spleen"), ".");
+  EXPECT_DOUBLE_EQ(session.dt(), 0.005);
+  const mesh::Points rest = session.organ(0).state->positions;
+  const auto max_offset = [&] {
+    return (session.organ(0).state->positions - rest).colwise().norm().maxCoeff();  // [m]
+  };
+  for (int i = 0; i < 200; ++i) session.Step();  // 1 s under gravity
+  EXPECT_GT(max_offset(), 0.0);
+  const double sag = max_offset();
+  EXPECT_LT(sag, 0.002) << "the anchored shell sags by millimetres at most";
+
+  // Press 4 mm into the top over 0.2 s and hold for 0.1 s.
+  const Eigen::Vector3d top = TopOf(session, 0);
+  uint64_t seq = 0;
+  for (int i = 0; i <= 60; ++i) {
+    const double depth = -0.004 + 0.008 * std::min(i, 40) / 40.0;
+    session.SetToolCommand(0, At(top - depth * Eigen::Vector3d::UnitZ(), 1.0, ++seq));
+    session.Step();
+  }
+  const contact::LocalForceModel& m = session.tool(0).force_model;
+  ASSERT_TRUE(m.in_contact);
+  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+      m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
+  EXPECT_GT(f.force.z(), 0.05) << "the tissue pushes the probe up [N]";
+  EXPECT_LT(f.force.z(), 5.0) << "a palpation, not a wall [N]";
+  const double dent = max_offset();
+  EXPECT_GT(dent, 0.002) << "the probe dents the surface";
+
+  // Lift away; after 1 s the shell is back within a millimetre of where gravity left it.
+  session.SetToolCommand(0, At(top + 0.03 * Eigen::Vector3d::UnitZ(), 1.0, ++seq));
+  for (int i = 0; i < 200; ++i) session.Step();
+  EXPECT_LT(max_offset(), 0.002);
+  EXPECT_EQ(session.rejected_steps(), 0u);
+  std::printf(
+      "spleen600: sag %.2f mm, probe 4 mm deep: force %.3f N, dent %.2f mm; 1 s after: %.2f mm\n",
+      1e3 * sag, f.force.z(), 1e3 * dent, 1e3 * max_offset());
 }
 
 }  // namespace
