@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "common/app/log.h"
+#include "common/app/scheduling.h"
 #include "common/app/signals.h"
 #include "common/dds/topics.h"
 #include "haptic_node/mock_script.h"
@@ -43,6 +44,13 @@ struct ToolModel {
 };
 
 int Run(const MockNodeOptions& options, const MockScript& script, const std::string& config) {
+  // The tick loop and Cyclone's threads wait on the clock and the wire: a short fair-scheduler
+  // slice wakes them promptly next to a busy physics (common/app/scheduling.h).
+  if (const app::SliceResult r = app::SetSchedulerSlice(app::kWireSlice); r.applied) {
+    Log(LogLevel::kInfo, "scheduler_slice", {{"slice_us", app::SchedulerSliceUs()}});
+  } else {
+    Log(LogLevel::kWarning, "scheduler_slice_not_applied", {{"detail", r.detail}});
+  }
   std::unique_ptr<dds::Domain> domain;
   if (!config.empty()) domain = std::make_unique<dds::Domain>(options.domain, config);
   dds::Participant participant(options.domain);

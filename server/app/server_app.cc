@@ -20,6 +20,7 @@
 #include <thread>
 
 #include "common/app/log.h"
+#include "common/app/scheduling.h"
 #include "common/app/signals.h"
 #include "common/dds/topics.h"
 #include "common/mesh_io/mesh_error.h"
@@ -148,6 +149,9 @@ class Server {
       : options_(options), session_(session) {
     std::random_device rd;
     server_id_ = (static_cast<uint64_t>(rd()) << 32) ^ rd();
+    // Cyclone's threads and the publisher (created from here on) wait on the wire: a short slice
+    // wakes them promptly next to the busy physics thread, which returns to the default slice.
+    LogSlice(app::SetSchedulerSlice(app::kWireSlice), "dds and publisher threads");
     if (!dds_config.empty()) {
       domain_ = std::make_unique<dds::Domain>(options.domain, dds_config);
     }
@@ -350,6 +354,7 @@ class Server {
 
   // Physics thread: commands in, one tick, force models out, snapshots for the publisher.
   void PhysicsLoop() {
+    LogSlice(app::SetSchedulerSlice(std::chrono::microseconds(0)), "physics thread");
     RequestRealtimePriority();
     Clock::time_point paced_start = Clock::now();
     Clock::time_point window_start = paced_start;
@@ -413,6 +418,16 @@ class Server {
       }
     }
     wall_time_ = Seconds(Clock::now() - start_);
+  }
+
+  static void LogSlice(const app::SliceResult& r, const char* threads) {
+    if (r.applied) {
+      Log(LogLevel::kInfo, "scheduler_slice",
+          {{"threads", threads}, {"slice_us", app::SchedulerSliceUs()}});
+    } else {
+      Log(LogLevel::kWarning, "scheduler_slice_not_applied",
+          {{"threads", threads}, {"detail", r.detail}});
+    }
   }
 
   void RequestRealtimePriority() {

@@ -9,6 +9,7 @@
 // At the end (--seconds after the first frame, --frames applied, or SIGTERM/SIGINT) it prints
 // one JSON line on stdout:
 //   {"frames": received, "applied": n, "latency_us": {"p50", "p90", "p99", "max"},
+//    "short_slice": whether the 100 µs scheduler slice (common/app/scheduling.h) applies,
 //    "waited": n, "bad": n, "stale": n, "no_topology": n, "nodes": num_nodes of the last frame}
 // Exit codes: 0 done, 2 usage, 5 DDS, 70 bug.
 #include <CLI/CLI.hpp>
@@ -25,6 +26,7 @@
 #include <string>
 #include <vector>
 
+#include "common/app/scheduling.h"
 #include "common/dds/dds.h"
 #include "common/dds/topics.h"
 #include "common/wire/frame_codec.h"
@@ -52,8 +54,9 @@ struct Options {
   uint32_t domain = 0;
   std::string session = "default";
   std::string dds_config;
-  double seconds = 6.0;  // [s] after the first frame
-  uint64_t frames = 0;   // 0: no limit
+  double seconds = 6.0;        // [s] after the first frame
+  uint64_t frames = 0;         // 0: no limit
+  bool default_slice = false;  // keep the kernel's default scheduler slice (the baseline)
 };
 
 struct Organ {
@@ -89,6 +92,10 @@ int64_t NowNs() {
 int Run(const Options& options) {
   namespace dds = somasim::dds;
   namespace wire = somasim::wire;
+  // As a viewer does: a short scheduler slice for this thread and Cyclone's (created below).
+  const somasim::app::SliceResult slice =
+      options.default_slice ? somasim::app::SliceResult{}
+                            : somasim::app::SetSchedulerSlice(somasim::app::kWireSlice);
   const dds::Domain domain(options.domain, dds::ReadDdsConfig(options.dds_config));
   const dds::Participant participant(options.domain);
   const dds::Topics topics(participant);
@@ -183,6 +190,8 @@ int Run(const Options& options) {
   out["stale"] = counts.stale;
   out["no_topology"] = counts.no_topology;
   out["nodes"] = counts.nodes;
+  out["short_slice"] = slice.applied;
+  if (!options.default_slice && !slice.applied) out["slice_detail"] = slice.detail;
   std::printf("%s\n", out.dump().c_str());
   std::fflush(stdout);
   return kExitOk;
@@ -205,6 +214,8 @@ int Main(int argc, char** argv) {
                  "server may take a minute to build its scene)")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
+  cli.add_flag("--default-slice", options.default_slice,
+               "keep the kernel's default scheduler slice (the baseline of the short one)");
   cli.add_option("--frames", options.frames, "stop after this many frames applied (0: no limit)")
       ->capture_default_str();
   try {
