@@ -195,6 +195,12 @@ TEST(ServerOverDds, BadToolCommandsAreDroppedAndCounted) {
   EXPECT_NE(log.find("position is not finite"), std::string::npos);
   EXPECT_NE(log.find("unknown tool \\\"scalpelx\\\""), std::string::npos);
   EXPECT_NE(log.find("format_version 7"), std::string::npos);
+  // The wire threads' scheduler slice is said either way (common/app/scheduling.h), and the
+  // physics thread's return to the default slice too.
+  EXPECT_TRUE(log.find("\"scheduler_slice\"") != std::string::npos ||
+              log.find("\"scheduler_slice_not_applied\"") != std::string::npos)
+      << log;
+  EXPECT_NE(log.find("physics thread"), std::string::npos) << log;
 }
 
 TEST(ServerOverDds, TwoSessionsInDifferentPartitionsNeverSeeEachOther) {
