@@ -8,6 +8,7 @@
 #include <numeric>
 #include <stdexcept>
 #include <string>
+#include <tuple>
 
 #include "server/contact/triangle_queries.h"
 
@@ -69,6 +70,25 @@ Slab MakeSlab(const Vector3d& p, const Vector3d& q) {
   return s;
 }
 
+// The box of a segment (or of anything) grown by `grow` [m], in single precision rounded
+// outwards: a node's box overlaps it only if the float comparisons say so, exactly (no rounding
+// in the test itself). Lane 3 is not compared (a node keeps its index / count there).
+struct GrownBox {
+  alignas(16) std::array<float, 4> lo;
+  alignas(16) std::array<float, 4> hi;
+};
+
+GrownBox MakeGrownBox(const Vector3d& p, const Vector3d& q, double grow) {
+  GrownBox b{};
+  for (size_t i = 0; i < 3; ++i) {
+    const auto k = static_cast<Eigen::Index>(i);
+    // Clamped to ±1e30 (positions are within it): no out-of-range conversion.
+    b.lo[i] = RoundDown(std::clamp(std::min(p[k], q[k]) - grow, -1e30, 1e30));
+    b.hi[i] = RoundUp(std::clamp(std::max(p[k], q[k]) + grow, -1e30, 1e30));
+  }
+  return b;
+}
+
 }  // namespace
 
 AabbTree::AabbTree(const mesh::Points& positions, const mesh::Triangles& triangles,
@@ -128,7 +148,8 @@ AabbTree::AabbTree(const mesh::Points& positions, const mesh::Triangles& triangl
     if (end - begin <= max_leaf_triangles) {
       nodes_.back().index = begin;
       nodes_.back().count = end - begin;
-      leaves_.push_back(Leaf{node, static_cast<int32_t>(leaf_vertices_.size()), 0});
+      leaves_.push_back(
+          Leaf{node, static_cast<int32_t>(leaf_vertices_.size()), 0, begin, end - begin, -1, 0});
       scratch.clear();
       for (int32_t k = begin; k < end; ++k) {
         for (int i = 0; i < 3; ++i) scratch.push_back(triangles(i, order_[static_cast<size_t>(k)]));
@@ -173,33 +194,112 @@ AabbTree::AabbTree(const mesh::Points& positions, const mesh::Triangles& triangl
   if (max_depth_ >= kMaxDepth) {
     throw std::logic_error("AabbTree: depth bound broken");  // unreachable by construction
   }
-  // Refit's order: leaves sorted by their number of vertices, so the inner loop's trip
-  // count repeats and its exit branch is predicted; internal nodes in reverse depth-first order.
+  // Refit's order. Internal nodes by height (a node after its children), ties in reverse
+  // depth-first order: consecutive nodes rarely depend on each other, so their refits overlap.
+  // Leaves in pairs (Refit's AVX2 pass takes two at a time): first the two children of each
+  // node of height 1, whose box that pass then writes too (so its internal pass starts after
+  // them), then the other leaves by vertex count (an odd one out pairs with itself); pairs
+  // sorted by count, so the inner loop's trip count repeats and its exit branch is predicted.
   {
-    std::vector<Leaf> sorted = leaves_;
-    for (size_t l = 0; l < sorted.size(); ++l) {
+    std::vector<int32_t> leaf_of(nodes_.size(), -1);
+    for (size_t l = 0; l < leaves_.size(); ++l) {
       const int32_t end = l + 1 < leaves_.size() ? leaves_[l + 1].vertex_begin
                                                  : static_cast<int32_t>(leaf_vertices_.size());
-      sorted[l].vertex_count = end - leaves_[l].vertex_begin;
+      leaves_[l].vertex_count = end - leaves_[l].vertex_begin;
+      leaf_of[static_cast<size_t>(leaves_[l].node)] = static_cast<int32_t>(l);
     }
-    // A total order (ties by node), so plain sort is deterministic; no stable_sort, whose
-    // temporary buffer comes from nothrow new.
-    std::sort(sorted.begin(), sorted.end(), [](const Leaf& x, const Leaf& y) {
-      return x.vertex_count < y.vertex_count ||
-             (x.vertex_count == y.vertex_count && x.node < y.node);
-    });
-    std::vector<int32_t> vertices;
-    vertices.reserve(leaf_vertices_.size());
-    for (Leaf& leaf : sorted) {
-      const auto first = leaf_vertices_.begin() + leaf.vertex_begin;
-      leaf.vertex_begin = static_cast<int32_t>(vertices.size());
-      vertices.insert(vertices.end(), first, first + leaf.vertex_count);
-    }
-    leaves_ = std::move(sorted);
-    leaf_vertices_ = std::move(vertices);
+    std::vector<int32_t> height(nodes_.size(), 0);
     for (size_t i = nodes_.size(); i-- > 0;) {
-      if (nodes_[i].count == 0) internal_.push_back(static_cast<int32_t>(i));
+      if (nodes_[i].count != 0) continue;
+      height[i] = 1 + std::max(height[i + 1], height[static_cast<size_t>(nodes_[i].index)]);
+      internal_.push_back(static_cast<int32_t>(i));
     }
+    // Total orders throughout (ties by node), so plain sort is deterministic; no stable_sort,
+    // whose temporary buffer comes from nothrow new.
+    std::sort(internal_.begin(), internal_.end(), [&](int32_t x, int32_t y) {
+      const int32_t hx = height[static_cast<size_t>(x)];
+      const int32_t hy = height[static_cast<size_t>(y)];
+      return hx < hy || (hx == hy && x > y);
+    });
+    struct Pair {
+      int32_t first;  // leaves_ indices
+      int32_t second;
+      int32_t parent;  // the node of height 1 whose children they are, or -1
+      int32_t count;   // the larger vertex count, rounded up to even
+    };
+    auto count_of = [&](int32_t x, int32_t y) {
+      const int32_t c = std::max(leaves_[static_cast<size_t>(x)].vertex_count,
+                                 leaves_[static_cast<size_t>(y)].vertex_count);
+      return c + c % 2;
+    };
+    std::vector<Pair> pairs;
+    std::vector<bool> paired(leaves_.size(), false);
+    for (const int32_t i : internal_) {
+      if (height[static_cast<size_t>(i)] != 1) break;
+      const int32_t x = leaf_of[static_cast<size_t>(i) + 1];
+      const int32_t y = leaf_of[static_cast<size_t>(nodes_[static_cast<size_t>(i)].index)];
+      pairs.push_back(Pair{x, y, i, count_of(x, y)});
+      paired[static_cast<size_t>(x)] = true;
+      paired[static_cast<size_t>(y)] = true;
+      ++num_leaf_parents_;
+    }
+    std::vector<int32_t> rest;
+    for (size_t l = 0; l < leaves_.size(); ++l) {
+      if (!paired[l]) rest.push_back(static_cast<int32_t>(l));
+    }
+    std::sort(rest.begin(), rest.end(), [&](int32_t x, int32_t y) {
+      const Leaf& lx = leaves_[static_cast<size_t>(x)];
+      const Leaf& ly = leaves_[static_cast<size_t>(y)];
+      return lx.vertex_count < ly.vertex_count ||
+             (lx.vertex_count == ly.vertex_count && lx.node < ly.node);
+    });
+    for (size_t k = 0; k < rest.size(); k += 2) {
+      const int32_t x = rest[k];
+      const int32_t y = rest[std::min(k + 1, rest.size() - 1)];
+      pairs.push_back(Pair{x, y, -1, count_of(x, y)});
+    }
+    // Pairs holding the last vertex go at the very end: the AVX2 pass loads 4 doubles per
+    // vertex and masks the fourth only for them (past the last vertex is outside the matrix).
+    auto holds_last = [&](const Pair& pair) {
+      for (const int32_t l : {pair.first, pair.second}) {
+        const Leaf& leaf = leaves_[static_cast<size_t>(l)];
+        const auto first = leaf_vertices_.begin() + leaf.vertex_begin;
+        const auto last = first + leaf.vertex_count;
+        if (std::find(first, last, static_cast<int32_t>(num_vertices - 1)) != last) return true;
+      }
+      return false;
+    };
+    auto key = [&](const Pair& pair) {
+      return std::make_tuple(holds_last(pair), pair.parent < 0, pair.count, pair.first);
+    };
+    std::sort(pairs.begin(), pairs.end(),
+              [&](const Pair& x, const Pair& y) { return key(x) < key(y); });
+    num_unmasked_leaves_ = 0;
+    while (num_unmasked_leaves_ / 2 < pairs.size() &&
+           !holds_last(pairs[num_unmasked_leaves_ / 2])) {
+      num_unmasked_leaves_ += 2;
+    }
+    // Each pair's vertex lists padded to its count by repeating their last vertex (which
+    // changes no min or max).
+    std::vector<Leaf> ordered;
+    std::vector<int32_t> vertices;
+    for (const Pair& pair : pairs) {
+      for (const int32_t l : {pair.first, pair.second}) {
+        Leaf leaf = leaves_[static_cast<size_t>(l)];
+        const auto first = leaf_vertices_.begin() + leaf.vertex_begin;
+        const auto last = first + leaf.vertex_count;
+        leaf.vertex_begin = static_cast<int32_t>(vertices.size());
+        vertices.insert(vertices.end(), first, last);
+        vertices.insert(vertices.end(), static_cast<size_t>(pair.count - leaf.vertex_count),
+                        *(last - 1));
+        leaf.vertex_count = pair.count;
+        leaf.parent = pair.parent;
+        leaf.parent_index = pair.parent >= 0 ? nodes_[static_cast<size_t>(pair.parent)].index : 0;
+        ordered.push_back(leaf);
+      }
+    }
+    leaves_ = std::move(ordered);
+    leaf_vertices_ = std::move(vertices);
   }
   order_vertices_.resize(3 * static_cast<size_t>(t_count));
   for (size_t k = 0; k < order_.size(); ++k) {
@@ -209,6 +309,45 @@ AabbTree::AabbTree(const mesh::Points& positions, const mesh::Triangles& triangl
   }
   Refit(positions_);
   external_ = nullptr;  // the tree's own copy, so a temporary `positions` may go
+}
+
+int32_t AabbTree::CountBoxMismatchesForTesting() const {
+  const mesh::Points& xs = positions();
+  // Each node's triangle slots [first, last): a leaf's own; an internal node's span its
+  // children's (children follow their parent, so a reverse pass sees them first).
+  std::vector<int32_t> first(nodes_.size());
+  std::vector<int32_t> last(nodes_.size());
+  for (size_t i = nodes_.size(); i-- > 0;) {
+    const Node& node = nodes_[i];
+    if (node.count > 0) {
+      first[i] = node.index;
+      last[i] = node.index + node.count;
+    } else {
+      first[i] = first[i + 1];
+      last[i] = last[static_cast<size_t>(node.index)];
+    }
+  }
+  int32_t mismatches = 0;
+  for (size_t i = 0; i < nodes_.size(); ++i) {
+    Vector3d lo = Vector3d::Constant(kInf);
+    Vector3d hi = Vector3d::Constant(-kInf);
+    for (int32_t k = first[i]; k < last[i]; ++k) {
+      for (int c = 0; c < 3; ++c) {
+        const auto v = xs.col(triangles_(c, order_[static_cast<size_t>(k)]));
+        lo = lo.cwiseMin(v);
+        hi = hi.cwiseMax(v);
+      }
+    }
+    bool ok = true;
+    for (size_t k = 0; k < 3; ++k) {
+      const auto e = static_cast<Eigen::Index>(k);
+      const Node& node = nodes_[i];
+      ok = ok && node.lo[k] == RoundDown(lo[e]) && node.hi[k] == RoundUp(hi[e]) &&
+           static_cast<double>(node.lo[k]) <= lo[e] && static_cast<double>(node.hi[k]) >= hi[e];
+    }
+    mismatches += ok ? 0 : 1;
+  }
+  return mismatches;
 }
 
 int32_t AabbTree::num_triangles() const { return static_cast<int32_t>(triangles_.cols()); }
@@ -228,39 +367,97 @@ bool CpuHasAvx2() {
   return has;
 }
 
-// Refit's leaf pass with AVX2: a vertex's xyz in one 4-lane register (masked load, lane 3 = 0),
-// the same arithmetic as the SSE2 / scalar pass (exact min / max, then outwards by
-// 2^-22 |v| + 1e-37 and converted), so both give identical boxes. Templated so that it can take
-// the tree's private Leaf and Node types.
-template <typename LeafT, typename NodeT>
+// Refit's leaf pass with AVX2: a vertex's xyz in lanes 0-2 of one 4-lane register, the same
+// arithmetic as the SSE2 / scalar pass (exact min / max, then outwards by
+// 2^-22 |v| + 1e-37 and converted), so both give identical boxes. Leaves go in pairs of equal,
+// even vertex counts (see the build): four independent min / max chains, so the loop waits on
+// a quarter of the latencies of one. When the pair are a node's two children, that node's box
+// is the float min / max of theirs, as in the internal pass. Nodes are written whole, 32 bytes
+// from registers (index and count come with the leaf), never read: leaves are visited in
+// Refit's order, not the nodes', and a read-modify-write would wait on each node's line.
+// Templated so that it can take the tree's private Leaf and Node types.
+template <bool kMasked, typename LeafT, typename NodeT>
 __attribute__((target("avx2"))) void RefitLeavesAvx2(const double* x, const LeafT* leaves,
                                                      size_t num_leaves, const int32_t* vertices,
                                                      NodeT* nodes) {
   const __m256i xyz = _mm256_set_epi64x(0, -1, -1, -1);
+  // Vertex v's xyz in lanes 0-2. Unmasked, lane 3 is the next vertex's x (never stored), which
+  // is why the build puts the pairs holding the last vertex at the end, for the masked call.
+  auto load = [ x, xyz ](int32_t v) __attribute__((target("avx2"))) {
+    const double* at = x + 3 * static_cast<ptrdiff_t>(v);
+    return kMasked ? _mm256_maskload_pd(at, xyz) : _mm256_loadu_pd(at);
+  };
   const __m256d sign = _mm256_set1_pd(-0.0);
   const __m256d rel = _mm256_set1_pd(kOutwardRelative);
   const __m256d abs_ = _mm256_set1_pd(kOutwardAbsolute);
-  for (size_t l = 0; l < num_leaves; ++l) {
-    const int32_t* k = vertices + leaves[l].vertex_begin;
-    const int32_t* end = k + leaves[l].vertex_count;
-    __m256d lo = _mm256_set1_pd(kInf);
-    __m256d hi = _mm256_set1_pd(-kInf);
-    for (; k != end; ++k) {
-      const __m256d v = _mm256_maskload_pd(x + 3 * static_cast<ptrdiff_t>(*k), xyz);
-      lo = _mm256_min_pd(lo, v);
-      hi = _mm256_max_pd(hi, v);
+  for (size_t l = 0; l < num_leaves; l += 2) {
+    const LeafT& leaf_a = leaves[l];
+    const LeafT& leaf_b = leaves[l + 1];
+    const int32_t* ka = vertices + leaf_a.vertex_begin;
+    const int32_t* kb = vertices + leaf_b.vertex_begin;
+    const int32_t count = leaf_a.vertex_count;
+    __m256d lo[4];
+    lo[0] = load(ka[0]);
+    lo[1] = load(ka[1]);
+    lo[2] = load(kb[0]);
+    lo[3] = load(kb[1]);
+    __m256d hi[4] = {lo[0], lo[1], lo[2], lo[3]};
+    for (int32_t j = 2; j < count; j += 2) {
+      const __m256d a0 = load(ka[j]);
+      const __m256d a1 = load(ka[j + 1]);
+      const __m256d b0 = load(kb[j]);
+      const __m256d b1 = load(kb[j + 1]);
+      lo[0] = _mm256_min_pd(lo[0], a0);
+      hi[0] = _mm256_max_pd(hi[0], a0);
+      lo[1] = _mm256_min_pd(lo[1], a1);
+      hi[1] = _mm256_max_pd(hi[1], a1);
+      lo[2] = _mm256_min_pd(lo[2], b0);
+      hi[2] = _mm256_max_pd(hi[2], b0);
+      lo[3] = _mm256_min_pd(lo[3], b1);
+      hi[3] = _mm256_max_pd(hi[3], b1);
     }
-    lo = _mm256_sub_pd(lo, _mm256_add_pd(_mm256_mul_pd(_mm256_andnot_pd(sign, lo), rel), abs_));
-    hi = _mm256_add_pd(hi, _mm256_add_pd(_mm256_mul_pd(_mm256_andnot_pd(sign, hi), rel), abs_));
-    NodeT& node = nodes[leaves[l].node];
-    // Lanes 0-2 only (two partial stores each), so the node is not read: leaves are visited in
-    // Refit's order, not the nodes', and a read-modify-write would wait on each node's line.
-    const __m128 flo = _mm256_cvtpd_ps(lo);
-    const __m128 fhi = _mm256_cvtpd_ps(hi);
-    _mm_storel_pi(reinterpret_cast<__m64*>(node.lo), flo);
-    _mm_store_ss(node.lo + 2, _mm_movehl_ps(flo, flo));
-    _mm_storel_pi(reinterpret_cast<__m64*>(node.hi), fhi);
-    _mm_store_ss(node.hi + 2, _mm_movehl_ps(fhi, fhi));
+    __m128 flo[2];
+    __m128 fhi[2];
+    for (size_t s = 0; s < 2; ++s) {
+      __m256d box_lo = _mm256_min_pd(lo[2 * s], lo[2 * s + 1]);
+      __m256d box_hi = _mm256_max_pd(hi[2 * s], hi[2 * s + 1]);
+      box_lo = _mm256_sub_pd(
+          box_lo, _mm256_add_pd(_mm256_mul_pd(_mm256_andnot_pd(sign, box_lo), rel), abs_));
+      box_hi = _mm256_add_pd(
+          box_hi, _mm256_add_pd(_mm256_mul_pd(_mm256_andnot_pd(sign, box_hi), rel), abs_));
+      flo[s] = _mm256_cvtpd_ps(box_lo);
+      fhi[s] = _mm256_cvtpd_ps(box_hi);
+      const LeafT& leaf = s == 0 ? leaf_a : leaf_b;
+      const __m128i node_lo = _mm_insert_epi32(_mm_castps_si128(flo[s]), leaf.triangle_begin, 3);
+      const __m128i node_hi = _mm_insert_epi32(_mm_castps_si128(fhi[s]), leaf.triangle_count, 3);
+      _mm256_store_si256(reinterpret_cast<__m256i*>(nodes + leaf.node),
+                         _mm256_set_m128i(node_hi, node_lo));
+    }
+    if (leaf_a.parent >= 0) {  // the pairs with a parent come first: predicted
+      const __m128i node_lo =
+          _mm_insert_epi32(_mm_castps_si128(_mm_min_ps(flo[0], flo[1])), leaf_a.parent_index, 3);
+      const __m128i node_hi = _mm_insert_epi32(_mm_castps_si128(_mm_max_ps(fhi[0], fhi[1])), 0, 3);
+      _mm256_store_si256(reinterpret_cast<__m256i*>(nodes + leaf_a.parent),
+                         _mm256_set_m128i(node_hi, node_lo));
+    }
+  }
+}
+
+// Refit's internal pass with AVX2: each child's whole node in one register (lo[3], index,
+// hi[3], count), their min in the low half and max in the high half, the node's own index
+// and count (0) in lanes 3 and 7, one 32-byte store. Float min / max as in the portable pass.
+template <typename NodeT>
+__attribute__((target("avx2"))) void RefitInternalAvx2(NodeT* nodes, const int32_t* internal,
+                                                       size_t count) {
+  for (size_t n = 0; n < count; ++n) {
+    const int32_t i = internal[n];
+    NodeT& node = nodes[i];
+    const int32_t right = node.index;
+    const __m256 a = _mm256_load_ps(nodes[i + 1].lo);
+    const __m256 b = _mm256_load_ps(nodes[right].lo);
+    const __m256 box = _mm256_blend_ps(_mm256_min_ps(a, b), _mm256_max_ps(a, b), 0xF0);
+    const __m256 own = _mm256_castsi256_ps(_mm256_set_epi32(0, 0, 0, 0, right, 0, 0, 0));
+    _mm256_store_ps(node.lo, _mm256_blend_ps(box, own, 0x88));
   }
 }
 #endif
@@ -283,7 +480,11 @@ void AabbTree::Refit(const mesh::Points& positions) {
 #if defined(SOMASIM_AABB_AVX2)
   const bool avx2 = CpuHasAvx2() && g_refit_avx2_enabled.load(std::memory_order_relaxed);
   if (avx2) {
-    RefitLeavesAvx2(x, leaves_.data(), leaves_.size(), leaf_vertices_.data(), nodes_.data());
+    RefitLeavesAvx2<false>(x, leaves_.data(), num_unmasked_leaves_, leaf_vertices_.data(),
+                           nodes_.data());
+    RefitLeavesAvx2<true>(x, leaves_.data() + num_unmasked_leaves_,
+                          leaves_.size() - num_unmasked_leaves_, leaf_vertices_.data(),
+                          nodes_.data());
   }
 #else
   constexpr bool avx2 = false;
@@ -337,12 +538,22 @@ void AabbTree::Refit(const mesh::Points& positions) {
     }
 #endif
   }
-  // Internal nodes bottom-up: children follow their parent in depth-first order, so one reverse
-  // pass sees both children before the parent. Float min/max is exact.
-  for (const int32_t i : internal_) {
-    Node& node = nodes_[static_cast<size_t>(i)];
-    const Node& a = nodes_[static_cast<size_t>(i) + 1];
-    const Node& b = nodes_[static_cast<size_t>(node.index)];
+  // Internal nodes bottom-up: in order of height, so one pass sees both children before the
+  // parent. Float min/max is exact.
+  Node* const nodes = nodes_.data();  // hoisted: the stores below cannot move the vector
+  // The AVX2 leaf pass has fitted the nodes of height 1 (internal_'s first) already.
+  const size_t first_internal = avx2 ? num_leaf_parents_ : 0;
+#if defined(SOMASIM_AABB_AVX2)
+  if (avx2) {
+    RefitInternalAvx2(nodes, internal_.data() + first_internal, internal_.size() - first_internal);
+  }
+#endif
+  for (size_t n = first_internal; n < internal_.size(); ++n) {
+    if (avx2) break;
+    const int32_t i = internal_[n];
+    Node& node = nodes[i];
+    const Node& a = nodes[i + 1];
+    const Node& b = nodes[node.index];
 #if defined(__SSE2__)
     // 16-byte loads of lo[3] + index and hi[3] + count; the fourth lane keeps the node's own
     // index / count. Whole 16-byte stores, so the parent's loads (often the next iteration) are
@@ -409,6 +620,23 @@ inline bool SlabEntry(const NodeT& node, const Slab& s, float grow, float limit,
   return enter <= exit + kSlabTSlack;
 }
 
+// Whether the node's box overlaps box b: two comparisons, no arithmetic, so it is exact (the
+// growth and outward rounding are in b). A short dependency chain: the traversal's decision at
+// each node waits on it.
+template <typename NodeT>
+inline bool BoxesOverlap(const NodeT& node, const GrownBox& b) {
+#if defined(__SSE2__)
+  const __m128 below = _mm_cmple_ps(_mm_loadu_ps(node.lo), _mm_load_ps(b.hi.data()));
+  const __m128 above = _mm_cmpge_ps(_mm_loadu_ps(node.hi), _mm_load_ps(b.lo.data()));
+  return (_mm_movemask_ps(_mm_and_ps(below, above)) & 7) == 7;
+#else
+  for (size_t i = 0; i < 3; ++i) {
+    if (!(node.lo[i] <= b.hi[i] && node.hi[i] >= b.lo[i])) return false;
+  }
+  return true;
+#endif
+}
+
 // Squared distance [m²] from the segment's start s.p to the box, in single precision: only an
 // ordering key (which child to visit first), never a pruning test.
 template <typename NodeT>
@@ -450,6 +678,18 @@ inline bool SegmentMeetsBox(const Vector3d& p, const Vector3d& inv_d, const Vect
   return enter <= exit + 1e-9;
 }
 
+// Whether the box of triangle abc overlaps box [lo, hi] (in double, exact).
+template <typename Col>
+inline bool TriangleMeetsBox(const Col& a, const Col& b, const Col& c, const Vector3d& lo,
+                             const Vector3d& hi) {
+  for (int i = 0; i < 3; ++i) {
+    if (std::max({a[i], b[i], c[i]}) < lo[i] || std::min({a[i], b[i], c[i]}) > hi[i]) {
+      return false;
+    }
+  }
+  return true;
+}
+
 // Squared distance [m²] from x to box [lo, hi].
 template <typename NodeT>
 inline double BoxDistanceSquared(const NodeT& node, const Vector3d& x) {
@@ -470,8 +710,11 @@ bool AabbTree::FirstHit(const Vector3d& p, const Vector3d& q, SegmentHit* hit) c
   if (nodes_.empty() || !p.allFinite() || !q.allFinite()) return false;
   const PreparedSegment segment(p, q);
   const Slab slab = MakeSlab(p, q);
-  const auto grow =
-      static_cast<float>(kSlabRelativeMargin * (scale_ + MaxAbs(p) + MaxAbs(q)) + 1e-30);
+  const double grow_m = kSlabRelativeMargin * (scale_ + MaxAbs(p) + MaxAbs(q)) + 1e-30;
+  const auto grow = static_cast<float>(grow_m);
+  const GrownBox box = MakeGrownBox(p, q, grow_m);
+  const Vector3d seg_lo = p.cwiseMin(q) - Vector3d::Constant(grow_m);
+  const Vector3d seg_hi = p.cwiseMax(q) + Vector3d::Constant(grow_m);
   double best_t = kInf;
   int32_t best_triangle = -1;
   Vector3d best_bary = Vector3d::Zero();
@@ -490,11 +733,16 @@ bool AabbTree::FirstHit(const Vector3d& p, const Vector3d& q, SegmentHit* hit) c
     if (node.count > 0) {
       for (int32_t k = node.index; k < node.index + node.count; ++k) {
         const int32_t* v = &order_vertices_[3 * static_cast<size_t>(k)];
+        const auto a = xs.col(v[0]);
+        const auto b = xs.col(v[1]);
+        const auto c = xs.col(v[2]);
+        // The triangle's box must overlap the segment's grown box: a triangle farther than
+        // grow_m from the segment (1e-6 of the scene's scale, far beyond the exact test's
+        // rounding) cannot be crossed, and most of a leaf's triangles are.
+        if (!TriangleMeetsBox(a, b, c, seg_lo, seg_hi)) continue;
         double t = 0.0;
         Vector3d bary;
-        if (!segment.Intersect(xs.col(v[0]), xs.col(v[1]), xs.col(v[2]), &t, &bary)) {
-          continue;
-        }
+        if (!segment.Intersect(a, b, c, &t, &bary)) continue;
         const int32_t tri = order_[static_cast<size_t>(k)];
         if (t < best_t || (t == best_t && tri < best_triangle)) {
           best_t = t;
@@ -506,10 +754,17 @@ bool AabbTree::FirstHit(const Vector3d& p, const Vector3d& q, SegmentHit* hit) c
       const auto limit = static_cast<float>(std::min(1.0, best_t));
       const int32_t left = current + 1;
       const int32_t right = node.index;
+      // First the cheap test against the segment's grown box (exact, and weaker than the slab
+      // test: a box the segment meets overlaps the segment's box); the slab test only when both
+      // children pass it, for their order and entry parameters.
+      bool hl = BoxesOverlap(nodes_[static_cast<size_t>(left)], box);
+      bool hr = BoxesOverlap(nodes_[static_cast<size_t>(right)], box);
       float tl = 0.0f;
       float tr = 0.0f;
-      const bool hl = SlabEntry(nodes_[static_cast<size_t>(left)], slab, grow, limit, &tl);
-      const bool hr = SlabEntry(nodes_[static_cast<size_t>(right)], slab, grow, limit, &tr);
+      if (hl && hr) {
+        hl = SlabEntry(nodes_[static_cast<size_t>(left)], slab, grow, limit, &tl);
+        hr = SlabEntry(nodes_[static_cast<size_t>(right)], slab, grow, limit, &tr);
+      }
       if (hl && hr) {
         // Nearer child first: its hits may prune the farther one.
         const bool left_first = tl <= tr;

@@ -14,9 +14,9 @@
 // Layout (private): 32-byte nodes in depth-first order (first child next, second child by
 // index), leaves holding a range of a triangle permutation with the triangles' vertex indices
 // copied alongside; for Refit each leaf's distinct vertices (one pass over leaves: box in
-// double, SSE2 or AVX2, rounded outwards to float once) and the internal nodes in reverse
-// depth-first order (one pass, float min/max). Depth is bounded (kMaxDepth), so traversals use
-// a fixed stack.
+// double, SSE2 or AVX2, rounded outwards to float once; the AVX2 pass takes leaves in pairs,
+// sibling leaves first, and fits their parent too) and the internal nodes by height (one pass,
+// float min/max). Depth is bounded (kMaxDepth), so traversals use a fixed stack.
 #pragma once
 
 #include <Eigen/Core>
@@ -101,6 +101,11 @@ class AabbTree {
   static constexpr int kMaxMidpointDepth = 48;
   static constexpr int kMaxDepth = 96;
   int max_depth() const { return max_depth_; }  // deepest leaf (root = 0), for tests
+  // For tests: how many nodes' boxes are not exactly their triangles' box computed afresh from
+  // positions() (per axis, the double min / max over the vertices of the node's triangles,
+  // rounded outwards to float as the build does), or do not contain one of those vertices.
+  // 0 after every build and refit, whichever pass computed the boxes.
+  int32_t CountBoxMismatchesForTesting() const;
 
  private:
   // A node: its box in single precision rounded outwards (it always contains its triangles),
@@ -116,19 +121,26 @@ class AabbTree {
     int32_t count;  // 0: internal
   };
   // A leaf for Refit: its node and its distinct vertices leaf_vertices_[vertex_begin ..
-  // vertex_begin + vertex_count).
+  // vertex_begin + vertex_count) (an even count >= 2, equal within each pair of leaves 2m,
+  // 2m + 1: padded by repeating one).
   struct Leaf {
     int32_t node;
     int32_t vertex_begin;
     int32_t vertex_count;
+    int32_t triangle_begin;  // the node's index and count, so Refit writes whole nodes
+    int32_t triangle_count;
+    int32_t parent;        // the node whose children are this leaf and its mate, or -1
+    int32_t parent_index;  // that node's index (its second child)
   };
   mesh::Points positions_;                  // 3 × N: the build's copy
   const mesh::Points* external_ = nullptr;  // 3 × N: the last Refit's positions, if any
   mesh::Triangles triangles_;               // 3 × T, as given
   std::vector<Node> nodes_;
-  std::vector<Leaf> leaves_;             // in Refit's order: by vertex_count
+  std::vector<Leaf> leaves_;             // in Refit's order: in pairs, by vertex_count
   std::vector<int32_t> leaf_vertices_;   // each leaf's distinct vertices, leaf after leaf
   std::vector<int32_t> internal_;        // internal nodes, children before parents
+  size_t num_leaf_parents_ = 0;          // internal_'s first, which Refit's AVX2 leaf pass fits
+  size_t num_unmasked_leaves_ = 0;       // leaves_'s first, not holding the last vertex
   std::vector<int32_t> order_;           // T: triangle index at each leaf slot
   std::vector<int32_t> order_vertices_;  // 3 × T: the vertex indices of order_'s triangles
   double scale_ = 0.0;                   // max |coordinate| of the root box [m], for margins

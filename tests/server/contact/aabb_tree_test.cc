@@ -382,6 +382,92 @@ TEST(AabbTree, PortableRefitPathAnswersExactly) {
   ExpectQueriesEqualBruteForce(tree, moved, m.triangles, 30, 100);
 }
 
+// Every node's single-precision box is exactly its triangles' box computed afresh (the double
+// min / max of their vertices rounded outwards), so it contains them, after the build and after
+// refits by either leaf pass (AVX2: leaves in pairs padded with repeated vertices, the parents of
+// leaf pairs fitted there too, the last vertex loaded masked; portable: leaf by leaf). Meshes
+// with odd numbers of leaves, single-triangle leaves, degenerate triangles, a lone triangle, and
+// coordinates from 1e-20 m to 1e20 m of both signs (the outward rounding).
+TEST(AabbTree, EveryBoxIsItsTrianglesBoxRoundedOutwardsAfterBuildAndRefit) {
+  auto expect_exact_boxes = [](const mesh::SurfaceMesh& m, int max_leaf, const std::string& name) {
+    SCOPED_TRACE(name + ", leaves of " + std::to_string(max_leaf));
+    AabbTree tree(m.vertices, m.triangles, max_leaf);
+    EXPECT_EQ(tree.CountBoxMismatchesForTesting(), 0);
+    const double size = BoundsOf(m.vertices).size();
+    const mesh::Points moved = Deformed(m.vertices, 11, 0.05 * size);
+    tree.Refit(moved);
+    EXPECT_EQ(tree.CountBoxMismatchesForTesting(), 0);
+    SetAabbRefitAvx2ForTesting(false);
+    tree.Refit(m.vertices);
+    EXPECT_EQ(tree.CountBoxMismatchesForTesting(), 0);
+    tree.Refit(moved);
+    SetAabbRefitAvx2ForTesting(true);
+    EXPECT_EQ(tree.CountBoxMismatchesForTesting(), 0);
+    tree.Refit(m.vertices);
+    EXPECT_EQ(tree.CountBoxMismatchesForTesting(), 0);
+  };
+  expect_exact_boxes(KidneyBoundary(), 8, "kidney424");
+  expect_exact_boxes(KidneyBoundary(), 3, "kidney424");
+  expect_exact_boxes(Gallbladder(), 8, "gallbladder5400");
+  for (const int max_leaf : {1, 2, 5, 8}) {
+    expect_exact_boxes(RandomSoup(21, 301, 0.1, true), max_leaf, "soup");
+    expect_exact_boxes(RandomSoup(22, 77, 0.1, false), max_leaf, "loose soup");
+  }
+  // Degenerate triangles (a point, a segment) among ordinary ones.
+  mesh::SurfaceMesh degenerate = RandomSoup(23, 100, 0.1, true);
+  for (int j = 0; j < 100; j += 7)
+    degenerate.triangles.col(j).setConstant(degenerate.triangles(0, j));
+  for (int j = 3; j < 100; j += 11) degenerate.triangles(2, j) = degenerate.triangles(1, j);
+  expect_exact_boxes(degenerate, 8, "degenerate");
+  expect_exact_boxes(degenerate, 1, "degenerate");
+  mesh::SurfaceMesh lone = RandomSoup(24, 1, 0.1, false);
+  expect_exact_boxes(lone, 8, "one triangle");
+  // Scales where float rounding is coarse or fine, zeros and both signs.
+  for (const double scale : {1e-20, 1e-3, 1e20}) {
+    mesh::SurfaceMesh scaled = RandomSoup(25, 200, 2.0, false);
+    scaled.vertices = (scaled.vertices.array() - 1.0) * scale;
+    scaled.vertices.col(0).setZero();
+    scaled.vertices(1, 1) = 0.0;
+    expect_exact_boxes(scaled, 4, "scale " + std::to_string(scale));
+  }
+}
+
+// FirstHit's pruning (the segment's grown box against node and triangle boxes, then slabs)
+// never drops a crossing at the very end of a segment: segments that start or end exactly on a
+// vertex or an edge midpoint, along random and axis directions, at scales from 1e-20 m to
+// 1e20 m, answer like brute force.
+TEST(AabbTree, FirstHitFindsCrossingsAtTheSegmentsEnds) {
+  const mesh::SurfaceMesh kidney = KidneyBoundary();
+  std::mt19937 rng(31);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::uniform_int_distribution<int32_t> pick(0, static_cast<int32_t>(kidney.triangles.cols()) - 1);
+  for (const double scale : {1e-20, 1.0, 1e20}) {
+    const mesh::Points x = kidney.vertices * scale;
+    const AabbTree tree(x, kidney.triangles);
+    const double size = BoundsOf(x).size();
+    int hits = 0;
+    for (int i = 0; i < 300; ++i) {
+      const auto tri = kidney.triangles.col(pick(rng));
+      const Vector3d end =
+          i % 2 == 0 ? Vector3d(x.col(tri[0])) : Vector3d(0.5 * (x.col(tri[0]) + x.col(tri[1])));
+      Vector3d dir = i % 3 == 0 ? Vector3d::Unit(i % 9 / 3) : Vector3d(u(rng), u(rng), u(rng));
+      dir *= 1e-3 * size * (u(rng) < 0.0 ? -1.0 : 1.0);
+      for (const bool ends_there : {true, false}) {
+        const Vector3d p = ends_there ? Vector3d(end + dir) : end;
+        const Vector3d q = ends_there ? end : Vector3d(end + dir);
+        const SegmentHit expected = BruteFirstHit(x, kidney.triangles, p, q);
+        SegmentHit hit;
+        ASSERT_EQ(tree.FirstHit(p, q, &hit), expected.triangle >= 0) << scale << " " << i;
+        if (expected.triangle < 0) continue;
+        ++hits;
+        EXPECT_EQ(hit.triangle, expected.triangle);
+        EXPECT_EQ(hit.t, expected.t);
+      }
+    }
+    EXPECT_GT(hits, 300) << "too few end crossings at scale " << scale;
+  }
+}
+
 TEST(AabbTree, DegenerateMeshesKeepTheDepthBoundAndAnswerExactly) {
   mesh::SurfaceMesh same;
   same.vertices.resize(3, 3);
