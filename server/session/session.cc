@@ -26,13 +26,7 @@ constexpr double kSurfacePoisson = 0.45;       // [-] for the anchors' flat-punc
 // N/m.
 void MakeShapeRetainingSurface(scene::Organ* organ, const mesh_gen::BuiltinOrganSpec& spec) {
   const mesh::SurfaceMesh surface = mesh_gen::GenerateBuiltinOrgan(spec.name).surface;
-  double area = 0.0;  // [m²]
-  for (Eigen::Index t = 0; t < surface.triangles.cols(); ++t) {
-    const Eigen::Vector3d a = surface.vertices.col(surface.triangles(0, t));
-    const Eigen::Vector3d b = surface.vertices.col(surface.triangles(1, t));
-    const Eigen::Vector3d c = surface.vertices.col(surface.triangles(2, t));
-    area += 0.5 * (b - a).cross(c - a).norm();
-  }
+  const double area = mesh::SurfaceArea(surface);  // [m²]
   const double node_radius =
       std::sqrt(area / (std::numbers::pi * static_cast<double>(surface.vertices.cols())));  // [m]
   scene::Material* m = organ->mutable_material();

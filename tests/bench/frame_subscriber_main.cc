@@ -30,6 +30,7 @@
 #include "common/dds/dds.h"
 #include "common/dds/topics.h"
 #include "common/wire/frame_codec.h"
+#include "common/wire/mesh_frame_view.h"
 
 namespace {
 
@@ -142,14 +143,7 @@ int Run(const Options& options) {
       ++counts.no_topology;
       return;
     }
-    wire::FrameView v;
-    v.frame = f.frame;
-    v.base_frame = f.base_frame;
-    v.keyframe = f.keyframe;
-    v.num_nodes = f.num_nodes;
-    v.indices = {f.indices._buffer, f.indices._length};
-    v.positions = {f.positions._buffer, f.positions._length};
-    switch (it->second.decoder->Apply(v)) {
+    switch (it->second.decoder->Apply(wire::ViewOf(f))) {
       case wire::FrameDecoder::Result::kApplied:
         ++counts.applied;
         break;

@@ -9,6 +9,8 @@
 #include <sstream>
 #include <thread>
 
+#include "common/wire/mesh_frame_view.h"
+
 namespace somasim::testing {
 namespace {
 
@@ -136,14 +138,7 @@ void SessionClient::OnFrame(const somasim_wire_MeshFrame& f) {
     ++o.frames_dropped_on_purpose;
     return;
   }
-  wire::FrameView v;
-  v.frame = f.frame;
-  v.base_frame = f.base_frame;
-  v.keyframe = f.keyframe;
-  v.num_nodes = f.num_nodes;
-  v.indices = {f.indices._buffer, f.indices._length};
-  v.positions = {f.positions._buffer, f.positions._length};
-  const wire::FrameDecoder::Result r = o.decoder->Apply(v);
+  const wire::FrameDecoder::Result r = o.decoder->Apply(wire::ViewOf(f));
   if (r == wire::FrameDecoder::Result::kBad) ++o.bad_frames;
   if (r == wire::FrameDecoder::Result::kApplied && on_applied) {
     const std::span<const float> p = o.decoder->positions();
