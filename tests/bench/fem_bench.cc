@@ -11,7 +11,9 @@
 //                                        1e-6, under a constant load after warm-up steps;
 //   BM_FemAssembly/liver4055             assembling that model's global tangent;
 //   BM_FemFactorization/liver4055        CHOLMOD's numeric factorisation of it (free DOFs);
-//   BM_FemSolve/liver4055                the triangular solves with that factor.
+//   BM_FemSolve/liver4055                the triangular solves with that factor;
+//   BM_FemSpmvUpper/liver4055            one product with the corotational step's matrix
+//                                        (BM_FemSpmvUpperScalar: its portable path).
 // The corotational organ hangs from its nodes nearest one end (x ≤ min x + 10 % of the length),
 // under gravity. The hyperelastic liver is held at both ends (x ≤ min + 10 %, x ≥ max - 10 %)
 // with 1 N down on its top central surface node (seed 000's case).
@@ -23,6 +25,7 @@
 #include <vector>
 
 #include "common/mesh_gen/builtin_organs.h"
+#include "server/models/fem/block_sparse.h"
 #include "server/models/fem/fem_model.h"
 #include "server/models/fem/sparse_cholesky.h"
 
@@ -229,6 +232,32 @@ void Solve(benchmark::State& bench) {
   bench.counters["dofs"] = t.num_dofs;
 }
 
+// One product with the corotational step's matrix storage (upper blocks), the CG's kernel:
+// 23 of these are in every BM_FemCorotationalStep (20 CG iterations, CG's initial residual, K v
+// for the damping and the held nodes' columns). The portable path alongside, as the in-run
+// baseline of the vector one.
+void UpperProduct(benchmark::State& bench, bool scalar) {
+  const mesh_gen::BuiltinOrgan built = mesh_gen::GenerateBuiltinOrgan("liver4055");
+  const auto n = static_cast<int32_t>(built.volume.vertices.cols());
+  BlockSparseMatrix a = BlockSparseMatrix::FromTets(built.volume.tetrahedra, n, true);
+  a.set_force_scalar(scalar);
+  double* values = a.values();
+  for (int32_t k = 0; k < 9 * a.num_blocks(); ++k) values[k] = 1.0 / (1.0 + (k % 17));
+  std::vector<double> x(3 * static_cast<size_t>(n)), y(x.size());
+  for (size_t i = 0; i < x.size(); ++i) x[i] = static_cast<double>(i % 7) - 3.0;
+  for (auto _ : bench) {
+    a.Multiply(x.data(), y.data(), nullptr);
+    benchmark::DoNotOptimize(y.data());
+  }
+  bench.counters["blocks"] = a.num_blocks();
+}
+
+BENCHMARK_CAPTURE(UpperProduct, vector, false)
+    ->Name("BM_FemSpmvUpper/liver4055")
+    ->Unit(benchmark::kMicrosecond);
+BENCHMARK_CAPTURE(UpperProduct, scalar, true)
+    ->Name("BM_FemSpmvUpperScalar/liver4055")
+    ->Unit(benchmark::kMicrosecond);
 BENCHMARK(HyperelasticNewtonIteration)
     ->Name("BM_FemHyperelasticNewtonIter/liver4055")
     ->Unit(benchmark::kMillisecond);

@@ -59,6 +59,10 @@ BlockSparseMatrix BlockSparseMatrix::FromTets(const mesh::Tetrahedra& tets, int3
     }
   }
   m.values_.assign(9 * m.columns_.size(), 0.0);
+  if (upper) {
+    m.transposed_lanes_.assign(8 * n + 8, 0.0);  // + 8: room to start on a 64-byte boundary
+    m.transposed_last_.assign(n, 0.0);
+  }
   return m;
 }
 
@@ -185,45 +189,87 @@ SOMASIM_FEM_AVX512 void MultiplyAvx512(const int32_t* row_start, const int32_t* 
   }
 }
 
-// MultiplyUpperScalar with the row's own sums as in MultiplyAvx512 and the transposed blocks'
-// contributions (three dot products each) in scalar FMAs.
+// MultiplyUpperScalar with the row's own sums as in MultiplyAvx512. The transposed block's
+// contribution Bᵀ x_i to row j > i is accumulated in the same lane layout: B's first eight
+// values permuted to (b0 b3 b6 b1 b4 b7 b2 b5) times (x_i x_i x_i y_i y_i y_i z_i z_i) into row
+// j's eight lanes `lanes` (8 × n), and b8 z_i into `last` (n); row j starts its sums from them
+// (every contribution to row j comes from a row above it) and zeroes them for the next product.
+// Every row is written whole, so y needs no clearing.
+// One off-diagonal block k = (i, j) of MultiplyUpperAvx512: its row product into (acc, last),
+// its transposed product into row j's lanes.
+SOMASIM_FEM_AVX512 inline void UpperBlock(const double* values, const int32_t* columns,
+                                          const double* x, size_t k, __m512d xi, double zi,
+                                          __m512d* acc, double* last, double* lanes_of,
+                                          double* last_of) {
+  const __m512i spread = _mm512_set_epi64(2, 2, 1, 1, 1, 0, 0, 0);
+  const __m512i transpose = _mm512_set_epi64(5, 2, 7, 4, 1, 6, 3, 0);
+  const auto j = static_cast<size_t>(columns[k]);
+  const double* b = values + 9 * k;
+  const __m512d block = _mm512_loadu_pd(b);
+  const double* xj = x + 3 * j;
+  *acc = _mm512_fmadd_pd(
+      block, _mm512_maskz_permutexvar_pd(0xFF, spread, _mm512_maskz_loadu_pd(0x7, xj)), *acc);
+  const double b8 = b[8];
+  *last += b8 * xj[2];
+  double* const their_lanes = lanes_of + 8 * j;
+  _mm512_store_pd(their_lanes, _mm512_fmadd_pd(_mm512_maskz_permutexvar_pd(0xFF, transpose, block),
+                                               xi, _mm512_load_pd(their_lanes)));
+  last_of[j] += b8 * zi;
+}
+
+// MultiplyUpperScalar with the row's own sums as in MultiplyAvx512. The transposed block's
+// contribution Bᵀ x_i to row j > i is accumulated in the same lane layout: B's first eight
+// values permuted to (b0 b3 b6 b1 b4 b7 b2 b5) times (x_i x_i x_i y_i y_i y_i z_i z_i) into row
+// j's eight lanes (`lanes_of`, 8 × n, 64-byte aligned), and b8 z_i into `last_of` (n); row j
+// starts its sums from them (every contribution to row j comes from a row above it) and zeroes
+// them for the next product. Every row is written whole, so y needs no clearing. A row's first
+// block is its diagonal (upper storage, sorted columns).
 SOMASIM_FEM_AVX512 void MultiplyUpperAvx512(const int32_t* row_start, const int32_t* columns,
                                             const double* values, size_t n, const double* x,
-                                            double* y, const uint8_t* constrained) {
-  std::fill(y, y + 3 * n, 0.0);
+                                            double* y, const uint8_t* constrained, double* lanes_of,
+                                            double* last_of) {
+  const __m512i spread = _mm512_set_epi64(2, 2, 1, 1, 1, 0, 0, 0);
   for (size_t i = 0; i < n; ++i) {
-    if (constrained != nullptr && constrained[i] != 0) continue;
-    const double xi = x[3 * i], yi = x[3 * i + 1], zi = x[3 * i + 2];
-    __m512d acc0 = _mm512_setzero_pd(), acc1 = _mm512_setzero_pd();
-    double last0 = 0.0, last1 = 0.0;
+    double* const own_lanes = lanes_of + 8 * i;
+    __m512d acc0 = _mm512_load_pd(own_lanes);
+    double last0 = last_of[i];
+    _mm512_store_pd(own_lanes, _mm512_setzero_pd());
+    last_of[i] = 0.0;
+    if (constrained != nullptr && constrained[i] != 0) {
+      y[3 * i] = x[3 * i];
+      y[3 * i + 1] = x[3 * i + 1];
+      y[3 * i + 2] = x[3 * i + 2];
+      continue;
+    }
+    const __m512d xi =
+        _mm512_maskz_permutexvar_pd(0xFF, spread, _mm512_maskz_loadu_pd(0x7, x + 3 * i));
+    const double zi = x[3 * i + 2];
     const auto begin = static_cast<size_t>(row_start[i]);
     const auto end = static_cast<size_t>(row_start[i + 1]);
-    for (size_t k = begin; k < end; ++k) {
-      const auto j = static_cast<size_t>(columns[k]);
-      if (constrained != nullptr && constrained[j] != 0) continue;
-      if (((k - begin) & 1U) == 0) {
-        BlockProduct(values, columns, x, k, &acc0, &last0);
-      } else {
-        BlockProduct(values, columns, x, k, &acc1, &last1);
+    const double* diagonal = values + 9 * begin;
+    acc0 = _mm512_fmadd_pd(_mm512_loadu_pd(diagonal), xi, acc0);
+    last0 += diagonal[8] * zi;
+    __m512d acc1 = _mm512_setzero_pd();
+    double last1 = 0.0;
+    size_t k = begin + 1;
+    if (constrained == nullptr) {
+      for (; k + 1 < end; k += 2) {
+        UpperBlock(values, columns, x, k, xi, zi, &acc0, &last0, lanes_of, last_of);
+        UpperBlock(values, columns, x, k + 1, xi, zi, &acc1, &last1, lanes_of, last_of);
       }
-      if (j == i) continue;
-      const double* b = values + 9 * k;
-      y[3 * j] += b[0] * xi + b[1] * yi + b[2] * zi;
-      y[3 * j + 1] += b[3] * xi + b[4] * yi + b[5] * zi;
-      y[3 * j + 2] += b[6] * xi + b[7] * yi + b[8] * zi;
+      if (k < end) UpperBlock(values, columns, x, k, xi, zi, &acc0, &last0, lanes_of, last_of);
+    } else {
+      for (; k < end; ++k) {
+        if (constrained[columns[k]] == 0) {
+          UpperBlock(values, columns, x, k, xi, zi, &acc1, &last1, lanes_of, last_of);
+        }
+      }
     }
-    alignas(64) double lanes[8];
-    _mm512_store_pd(lanes, _mm512_add_pd(acc0, acc1));
-    y[3 * i] += lanes[0] + lanes[3] + lanes[6];
-    y[3 * i + 1] += lanes[1] + lanes[4] + lanes[7];
-    y[3 * i + 2] += lanes[2] + lanes[5] + (last0 + last1);
-  }
-  if (constrained == nullptr) return;
-  for (size_t i = 0; i < n; ++i) {
-    if (constrained[i] == 0) continue;
-    y[3 * i] = x[3 * i];
-    y[3 * i + 1] = x[3 * i + 1];
-    y[3 * i + 2] = x[3 * i + 2];
+    alignas(64) double sums[8];
+    _mm512_store_pd(sums, _mm512_add_pd(acc0, acc1));
+    y[3 * i] = sums[0] + sums[3] + sums[6];
+    y[3 * i + 1] = sums[1] + sums[4] + sums[7];
+    y[3 * i + 2] = sums[2] + sums[5] + (last0 + last1);
   }
 }
 #endif
@@ -234,7 +280,8 @@ void BlockSparseMatrix::Multiply(const double* x, double* y, const uint8_t* cons
   const auto n = static_cast<size_t>(num_nodes());
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
   if (CpuHasAvx512() && !force_scalar_ && upper_) {
-    MultiplyUpperAvx512(row_start_.data(), columns_.data(), values_.data(), n, x, y, constrained);
+    MultiplyUpperAvx512(row_start_.data(), columns_.data(), values_.data(), n, x, y, constrained,
+                        TransposedLanes(), transposed_last_.data());
     return;
   }
   if (CpuHasAvx512() && !force_scalar_) {
@@ -247,6 +294,13 @@ void BlockSparseMatrix::Multiply(const double* x, double* y, const uint8_t* cons
     return;
   }
   MultiplyScalar(row_start_.data(), columns_.data(), values_.data(), n, x, y, constrained);
+}
+
+double* BlockSparseMatrix::TransposedLanes() const {
+  // Each node's eight lanes on one cache line (an unaligned 64-byte store splits across two).
+  auto* p = transposed_lanes_.data();
+  const auto misalignment = reinterpret_cast<uintptr_t>(p) % 64;
+  return misalignment == 0 ? p : p + (64 - misalignment) / sizeof(double);
 }
 
 LowerCsc BlockSparseMatrix::ScalarLower(const std::vector<int32_t>& dof, int32_t num_dofs) const {
@@ -313,9 +367,64 @@ CgScratch::CgScratch(int32_t num_nodes)
       product(3 * static_cast<size_t>(num_nodes)),
       inverse_diagonal(9 * static_cast<size_t>(num_nodes)) {}
 
-CgResult ConjugateGradients(const BlockSparseMatrix& a, const uint8_t* constrained, const double* b,
-                            double* x, double tolerance, int max_iterations, CgScratch* scratch,
-                            bool exactly_max_iterations) {
+namespace {
+
+// Σ_k u[k] v[k] over `size` values in eight interleaved partial sums (independent chains, which
+// the compiler may also pack into vector lanes), added pairwise at the end.
+__attribute__((always_inline)) inline double Dot(const double* u, const double* v, size_t size) {
+  double s[8] = {};
+  size_t k = 0;
+  for (; k + 8 <= size; k += 8) {
+    for (size_t l = 0; l < 8; ++l) s[l] += u[k + l] * v[k + l];
+  }
+  for (; k < size; ++k) s[k % 8] += u[k] * v[k];
+  return ((s[0] + s[1]) + (s[2] + s[3])) + ((s[4] + s[5]) + (s[6] + s[7]));
+}
+
+// z_i = M_i r_i for each node's 3×3 block M_i (column-major in inv); returns Σ r·z, in three
+// partial sums (one per component).
+__attribute__((always_inline)) inline double Precondition(const double* inv, const double* r,
+                                                          double* z, size_t n) {
+  double s0 = 0.0, s1 = 0.0, s2 = 0.0;
+  for (size_t i = 0; i < n; ++i) {
+    const double* m = inv + 9 * i;
+    const double rx = r[3 * i], ry = r[3 * i + 1], rz = r[3 * i + 2];
+    const double zx = m[0] * rx + m[3] * ry + m[6] * rz;
+    const double zy = m[1] * rx + m[4] * ry + m[7] * rz;
+    const double zz = m[2] * rx + m[5] * ry + m[8] * rz;
+    z[3 * i] = zx;
+    z[3 * i + 1] = zy;
+    z[3 * i + 2] = zz;
+    s0 += rx * zx;
+    s1 += ry * zy;
+    s2 += rz * zz;
+  }
+  return (s0 + s1) + s2;
+}
+
+// x += α p, r -= α q; returns |r|² (Dot's partial sums).
+__attribute__((always_inline)) inline double Update(double alpha, const double* p, const double* q,
+                                                    double* x, double* r, size_t size) {
+  double s[8] = {};
+  size_t k = 0;
+  for (; k + 8 <= size; k += 8) {
+    for (size_t l = 0; l < 8; ++l) {
+      x[k + l] += alpha * p[k + l];
+      r[k + l] -= alpha * q[k + l];
+      s[l] += r[k + l] * r[k + l];
+    }
+  }
+  for (; k < size; ++k) {
+    x[k] += alpha * p[k];
+    r[k] -= alpha * q[k];
+    s[k % 8] += r[k] * r[k];
+  }
+  return ((s[0] + s[1]) + (s[2] + s[3])) + ((s[4] + s[5]) + (s[6] + s[7]));
+}
+
+__attribute__((always_inline)) inline CgResult ConjugateGradientsBody(
+    const BlockSparseMatrix& a, const uint8_t* constrained, const double* b, double* x,
+    double tolerance, int max_iterations, CgScratch* scratch, bool exactly_max_iterations) {
   const auto n = static_cast<size_t>(a.num_nodes());
   const size_t size = 3 * n;
   double* const r = scratch->residual.data();
@@ -342,60 +451,26 @@ CgResult ConjugateGradients(const BlockSparseMatrix& a, const uint8_t* constrain
       out.setIdentity();
     }
   }
-  const auto precondition = [&] {
-    for (size_t i = 0; i < n; ++i) {
-      const double* m = inv + 9 * i;
-      const double rx = r[3 * i], ry = r[3 * i + 1], rz = r[3 * i + 2];
-      z[3 * i] = m[0] * rx + m[3] * ry + m[6] * rz;
-      z[3 * i + 1] = m[1] * rx + m[4] * ry + m[7] * rz;
-      z[3 * i + 2] = m[2] * rx + m[5] * ry + m[8] * rz;
-    }
-  };
-  double b_norm2 = 0.0;
-  for (size_t k = 0; k < size; ++k) b_norm2 += b[k] * b[k];
+  const double b_norm2 = Dot(b, b, size);
   a.Multiply(x, q, constrained);
-  double r_norm2 = 0.0;
-  for (size_t k = 0; k < size; ++k) {
-    r[k] = b[k] - q[k];
-    r_norm2 += r[k] * r[k];
-  }
+  for (size_t k = 0; k < size; ++k) r[k] = b[k] - q[k];
+  double r_norm2 = Dot(r, r, size);
   CgResult result;
   const double threshold2 = tolerance * tolerance * b_norm2;
   const auto done = [&](int iterations) {
     if (exactly_max_iterations) return iterations >= max_iterations;
     return r_norm2 <= threshold2 || iterations >= max_iterations;
   };
-  precondition();
-  double rz = 0.0;
-  for (size_t k = 0; k < size; ++k) {
-    p[k] = z[k];
-    rz += r[k] * z[k];
-  }
+  double rz = Precondition(inv, r, z, n);
+  std::copy(z, z + size, p);
   int it = 0;
   while (!done(it) && rz > 0.0) {
     a.Multiply(p, q, constrained);
-    double pq = 0.0;
-    for (size_t k = 0; k < size; ++k) pq += p[k] * q[k];
+    const double pq = Dot(p, q, size);
     if (!(pq > 0.0)) break;  // not positive definite along p (or p = 0): stop where we are
     const double alpha = rz / pq;
-    // One pass: x, r, then z = M⁻¹ r node by node and the sums (in the order of separate loops).
-    r_norm2 = 0.0;
-    double rz_next = 0.0;
-    for (size_t i = 0; i < n; ++i) {
-      double* ri = r + 3 * i;
-      for (size_t c = 0; c < 3; ++c) {
-        x[3 * i + c] += alpha * p[3 * i + c];
-        ri[c] -= alpha * q[3 * i + c];
-        r_norm2 += ri[c] * ri[c];
-      }
-      const double* m = inv + 9 * i;
-      z[3 * i] = m[0] * ri[0] + m[3] * ri[1] + m[6] * ri[2];
-      z[3 * i + 1] = m[1] * ri[0] + m[4] * ri[1] + m[7] * ri[2];
-      z[3 * i + 2] = m[2] * ri[0] + m[5] * ri[1] + m[8] * ri[2];
-      rz_next += ri[0] * z[3 * i];
-      rz_next += ri[1] * z[3 * i + 1];
-      rz_next += ri[2] * z[3 * i + 2];
-    }
+    r_norm2 = Update(alpha, p, q, x, r, size);
+    const double rz_next = Precondition(inv, r, z, n);
     ++it;
     const double beta = rz_next / rz;
     rz = rz_next;
@@ -405,6 +480,33 @@ CgResult ConjugateGradients(const BlockSparseMatrix& a, const uint8_t* constrain
   result.relative_residual = b_norm2 > 0.0 ? std::sqrt(r_norm2 / b_norm2) : std::sqrt(r_norm2);
   result.converged = r_norm2 <= threshold2;
   return result;
+}
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+// The same compiled for AVX-512 and FMA (its loops vectorise 8 wide; FMA rounds differently).
+SOMASIM_FEM_AVX512 CgResult ConjugateGradientsAvx512(const BlockSparseMatrix& a,
+                                                     const uint8_t* constrained, const double* b,
+                                                     double* x, double tolerance,
+                                                     int max_iterations, CgScratch* scratch,
+                                                     bool exactly_max_iterations) {
+  return ConjugateGradientsBody(a, constrained, b, x, tolerance, max_iterations, scratch,
+                                exactly_max_iterations);
+}
+#endif
+
+}  // namespace
+
+CgResult ConjugateGradients(const BlockSparseMatrix& a, const uint8_t* constrained, const double* b,
+                            double* x, double tolerance, int max_iterations, CgScratch* scratch,
+                            bool exactly_max_iterations) {
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+  if (CpuHasAvx512()) {
+    return ConjugateGradientsAvx512(a, constrained, b, x, tolerance, max_iterations, scratch,
+                                    exactly_max_iterations);
+  }
+#endif
+  return ConjugateGradientsBody(a, constrained, b, x, tolerance, max_iterations, scratch,
+                                exactly_max_iterations);
 }
 
 }  // namespace somasim::models::fem

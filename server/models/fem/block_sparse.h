@@ -68,6 +68,11 @@ class BlockSparseMatrix {
   std::vector<int32_t> diagonal_;        // num_nodes: index of block (i, i)
   std::vector<int32_t> element_blocks_;  // 16 × num_tets
   std::vector<double> values_;           // 9 × num_blocks
+  // Upper storage's AVX-512 product: the transposed blocks' contributions to each node's row, in
+  // the row sums' lane layout (8 per node) and the ninth value (1 per node), added when the
+  // product reaches that row and zeroed there. Scratch, zero between products.
+  mutable std::vector<double> transposed_lanes_, transposed_last_;
+  double* TransposedLanes() const;  // transposed_lanes_ from its first 64-byte boundary
   bool force_scalar_ = false;
   bool upper_ = false;
 };

@@ -7,6 +7,11 @@
 #include <stdexcept>
 #include <string>
 
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#endif
+
+#include "server/models/cpu_features.h"
 #include "server/models/particle_mesh.h"
 
 namespace somasim::models::fem {
@@ -341,76 +346,86 @@ struct WarpedPass {
   bool linear;
 };
 
-void ElementPass(const WarpedPass& a) {
+// Element e's part before its blocks: its nodal forces into a.forces, its rotated gradients
+// r_a = R ∇N_a (r[4][3]) and the blocks' factors V k λ, V k μ (k = k_scale g).
+// Always inlined, so that the AVX-512 pass compiles it for its target too (FMA).
+__attribute__((always_inline)) inline void ElementForcesAndGradients(const WarpedPass& a, size_t e,
+                                                                     double r[4][3], double* cl_out,
+                                                                     double* cm_out) {
   const double g = a.g, lambda = a.lambda, mu = a.mu;
-  const double k_g = a.k_scale * g;  // a viscous step's stiffness is g times the elastic one
+  const double* grad = a.gradients + 12 * e;  // ∇N_a at grad + 3a
+  const double* rot = a.rotations + 9 * e;    // column-major R
+  const int32_t* node = a.tets + 4 * e;
+  // H = F - I = Σ_a (x_a - X_a) ∇N_aᵀ (ElementStress), h[i][j] = H(i, j).
+  double h[3][3] = {};
+  for (int c0 = 0; c0 < 4; ++c0) {
+    const auto k = 3 * static_cast<size_t>(node[c0]);
+    for (int i = 0; i < 3; ++i) {
+      const double u = a.x[k + static_cast<size_t>(i)] - a.rest[k + static_cast<size_t>(i)];
+      for (int j = 0; j < 3; ++j) h[i][j] += u * grad[3 * c0 + j];
+    }
+  }
+  // ε: linear sym(H); corotational sym((Rᵀ - I) + Rᵀ H) (ElementStress).
+  double eps[3][3];
+  if (a.linear) {
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) eps[i][j] = 0.5 * (h[i][j] + h[j][i]);
+    }
+  } else {
+    double s[3][3];  // S - I = Rᵀ - I + Rᵀ H
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) {
+        double v = rot[3 * i + j] - (i == j ? 1.0 : 0.0);  // Rᵀ(i, j) = R(j, i)
+        for (int k = 0; k < 3; ++k) v += rot[3 * i + k] * h[k][j];
+        s[i][j] = v;
+      }
+    }
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) eps[i][j] = 0.5 * (s[i][j] + s[j][i]);
+    }
+  }
+  // σ = g (λ tr ε I + 2 μ ε) + offset, P = R σ.
+  const double tr = eps[0][0] + eps[1][1] + eps[2][2];
+  double sigma[3][3];
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) {
+      sigma[i][j] = g * (2.0 * mu * eps[i][j] + (i == j ? lambda * tr : 0.0));
+    }
+  }
+  if (a.offset != nullptr) {
+    const double* c = a.offset + 9 * e;  // column-major
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) sigma[i][j] += c[3 * j + i];
+    }
+  }
+  double p[3][3];
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) {
+      p[i][j] = rot[i] * sigma[0][j] + rot[3 + i] * sigma[1][j] + rot[6 + i] * sigma[2][j];
+    }
+  }
+  const double volume = a.volumes[e];
+  // f_a = -V P ∇N_a; r_a = R ∇N_a for the blocks.
+  for (int c0 = 0; c0 < 4; ++c0) {
+    const double* ga = grad + 3 * c0;
+    double* out = a.forces + 3 * static_cast<size_t>(node[c0]);
+    for (int i = 0; i < 3; ++i) {
+      out[i] -= volume * (p[i][0] * ga[0] + p[i][1] * ga[1] + p[i][2] * ga[2]);
+      r[c0][i] = rot[i] * ga[0] + rot[3 + i] * ga[1] + rot[6 + i] * ga[2];
+    }
+  }
+  const double v = a.k_scale * g * volume;  // a viscous step's stiffness is g times the elastic
+  *cl_out = v * lambda;
+  *cm_out = v * mu;
+}
+
+void ElementPass(const WarpedPass& a) {
   for (size_t e = 0; e < a.num_tets; ++e) {
-    const double* grad = a.gradients + 12 * e;  // ∇N_a at grad + 3a
-    const double* rot = a.rotations + 9 * e;    // column-major R
-    const int32_t* node = a.tets + 4 * e;
-    // H = F - I = Σ_a (x_a - X_a) ∇N_aᵀ (ElementStress), h[i][j] = H(i, j).
-    double h[3][3] = {};
-    for (int c0 = 0; c0 < 4; ++c0) {
-      const auto k = 3 * static_cast<size_t>(node[c0]);
-      for (int i = 0; i < 3; ++i) {
-        const double u = a.x[k + static_cast<size_t>(i)] - a.rest[k + static_cast<size_t>(i)];
-        for (int j = 0; j < 3; ++j) h[i][j] += u * grad[3 * c0 + j];
-      }
-    }
-    // ε: linear sym(H); corotational sym((Rᵀ - I) + Rᵀ H) (ElementStress).
-    double eps[3][3];
-    if (a.linear) {
-      for (int i = 0; i < 3; ++i) {
-        for (int j = 0; j < 3; ++j) eps[i][j] = 0.5 * (h[i][j] + h[j][i]);
-      }
-    } else {
-      double s[3][3];  // S - I = Rᵀ - I + Rᵀ H
-      for (int i = 0; i < 3; ++i) {
-        for (int j = 0; j < 3; ++j) {
-          double v = rot[3 * i + j] - (i == j ? 1.0 : 0.0);  // Rᵀ(i, j) = R(j, i)
-          for (int k = 0; k < 3; ++k) v += rot[3 * i + k] * h[k][j];
-          s[i][j] = v;
-        }
-      }
-      for (int i = 0; i < 3; ++i) {
-        for (int j = 0; j < 3; ++j) eps[i][j] = 0.5 * (s[i][j] + s[j][i]);
-      }
-    }
-    // σ = g (λ tr ε I + 2 μ ε) + offset, P = R σ.
-    const double tr = eps[0][0] + eps[1][1] + eps[2][2];
-    double sigma[3][3];
-    for (int i = 0; i < 3; ++i) {
-      for (int j = 0; j < 3; ++j) {
-        sigma[i][j] = g * (2.0 * mu * eps[i][j] + (i == j ? lambda * tr : 0.0));
-      }
-    }
-    if (a.offset != nullptr) {
-      const double* c = a.offset + 9 * e;  // column-major
-      for (int i = 0; i < 3; ++i) {
-        for (int j = 0; j < 3; ++j) sigma[i][j] += c[3 * j + i];
-      }
-    }
-    double p[3][3];
-    for (int i = 0; i < 3; ++i) {
-      for (int j = 0; j < 3; ++j) {
-        p[i][j] = rot[i] * sigma[0][j] + rot[3 + i] * sigma[1][j] + rot[6 + i] * sigma[2][j];
-      }
-    }
-    const double volume = a.volumes[e];
-    // f_a = -V P ∇N_a; r_a = R ∇N_a for the blocks.
-    double r[4][3];
-    for (int c0 = 0; c0 < 4; ++c0) {
-      const double* ga = grad + 3 * c0;
-      double* out = a.forces + 3 * static_cast<size_t>(node[c0]);
-      for (int i = 0; i < 3; ++i) {
-        out[i] -= volume * (p[i][0] * ga[0] + p[i][1] * ga[1] + p[i][2] * ga[2]);
-        r[c0][i] = rot[i] * ga[0] + rot[3 + i] * ga[1] + rot[6 + i] * ga[2];
-      }
-    }
+    double r[4][3], cl, cm;
+    ElementForcesAndGradients(a, e, r, &cl, &cm);
+    const double* grad = a.gradients + 12 * e;
     // The warped blocks as AssembleWarped: R K_ab Rᵀ = V (λ r_a r_bᵀ + μ r_b r_aᵀ + μ (∇N_a·∇N_b)
     // I).
-    const double v = k_g * volume;
-    const double cl = v * lambda, cm = v * mu;
     for (int c0 = 0; c0 < 4; ++c0) {
       for (int b = 0; b < 4; ++b) {
         const int32_t block = a.element_blocks[16 * e + static_cast<size_t>(4 * c0 + b)];
@@ -429,6 +444,50 @@ void ElementPass(const WarpedPass& a) {
     }
   }
 }
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+// ElementPass with each block's first eight values (column-major) in one AVX-512 register:
+// value 3c + i is cl r_a[i] r_b[c] + cm r_b[i] r_a[c] (+ the diagonal term where c = i), so with
+// each corner's r in the lane patterns I_a = (r0 r1 r2 r0 r1 r2 r0 r1) (lane k: r[k mod 3]) and
+// C_a = (r0 r0 r0 r1 r1 r1 r2 r2) (lane k: r[k / 3]) the eight are cl I_a C_b + cm I_b C_a, two
+// FMAs; value 8 (c = i = 2) is (cl + cm) r_a[2] r_b[2] + diagonal. Equal to ElementPass up to
+// rounding (the order of the additions).
+__attribute__((target("avx2,fma,avx512f,avx512vl"))) void ElementPassAvx512(const WarpedPass& a) {
+  const __m512i i_pattern = _mm512_set_epi64(1, 0, 2, 1, 0, 2, 1, 0);
+  const __m512i c_pattern = _mm512_set_epi64(2, 2, 1, 1, 1, 0, 0, 0);
+  for (size_t e = 0; e < a.num_tets; ++e) {
+    double r[4][3], cl, cm;
+    ElementForcesAndGradients(a, e, r, &cl, &cm);
+    __m512d lanes_i[4], lanes_c[4];
+    for (int c0 = 0; c0 < 4; ++c0) {
+      // From registers (a vector load of the three just-stored scalars would stall on store
+      // forwarding).
+      const __m512d ra = _mm512_castpd256_pd512(_mm256_set_pd(0.0, r[c0][2], r[c0][1], r[c0][0]));
+      lanes_i[c0] = _mm512_maskz_permutexvar_pd(0xFF, i_pattern, ra);
+      lanes_c[c0] = _mm512_maskz_permutexvar_pd(0xFF, c_pattern, ra);
+    }
+    const __m512d cl8 = _mm512_set1_pd(cl), cm8 = _mm512_set1_pd(cm);
+    const double* grad = a.gradients + 12 * e;
+    const int32_t* blocks = a.element_blocks + 16 * e;
+    for (int c0 = 0; c0 < 4; ++c0) {
+      const __m512d cl_ia = _mm512_mul_pd(cl8, lanes_i[c0]);
+      for (int b = 0; b < 4; ++b) {
+        const int32_t block = blocks[4 * c0 + b];
+        if (block < 0) continue;  // upper storage: the transpose of (b, a)
+        const double* ga = grad + 3 * c0;
+        const double* gb = grad + 3 * b;
+        const double diagonal = cm * (ga[0] * gb[0] + ga[1] * gb[1] + ga[2] * gb[2]);
+        double* out = a.values + 9 * static_cast<size_t>(block);
+        __m512d v = _mm512_maskz_mov_pd(0x11, _mm512_set1_pd(diagonal));
+        v = _mm512_fmadd_pd(_mm512_mul_pd(cm8, lanes_i[b]), lanes_c[c0], v);
+        v = _mm512_fmadd_pd(cl_ia, lanes_c[b], v);
+        _mm512_storeu_pd(out, _mm512_add_pd(_mm512_loadu_pd(out), v));
+        out[8] += (cl + cm) * r[c0][2] * r[b][2] + diagonal;
+      }
+    }
+  }
+}
+#endif
 
 }  // namespace
 
@@ -469,7 +528,15 @@ void FemModel::ForcesAndWarpedMatrix(const mesh::Points& x, double* forces, doub
   pass.mu = mu_;
   pass.k_scale = k_scale;
   pass.linear = kind_ == FemKind::kLinear;
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+  if (CpuHasAvx512() && !force_scalar_element_pass_) {
+    ElementPassAvx512(pass);
+  } else {
+    ElementPass(pass);
+  }
+#else
   ElementPass(pass);
+#endif
   for (int32_t i = 0; i < num_nodes(); ++i) {
     matrix->block(matrix->diagonal_block(i)).diagonal().array() +=
         m_scale * mass_[static_cast<size_t>(i)];

@@ -192,6 +192,9 @@ class FemModel final : public TissueModel {
   // overwritten). Allocates nothing when `matrix` has the model's pattern already.
   void AssembleTangent(const mesh::Points& x, BlockSparseMatrix* matrix) const;
   const BlockSparseMatrix& pattern() const { return pattern_; }
+  // For tests: a linear or corotational Step takes its portable element pass even where the
+  // AVX-512 one is available (equal up to rounding). Set it before stepping.
+  void set_force_scalar_element_pass(bool scalar) { force_scalar_element_pass_ = scalar; }
 
   // The element tangent -∂f_e/∂x_e (12 × 12, corners a = 0..3 × xyz) of element e at positions
   // x: exact (with the derivative of R) or warped (R K_e Rᵀ; the hyperelastic model has only
@@ -269,6 +272,7 @@ class FemModel final : public TissueModel {
   double cg_tolerance_ = 1e-6;
   int cg_max_iterations_ = 500;
   bool cg_fixed_iterations_ = false;
+  bool force_scalar_element_pass_ = false;
 };
 
 }  // namespace somasim::models::fem
