@@ -346,6 +346,46 @@ struct WarpedPass {
   bool linear;
 };
 
+// H = F - I = Σ_a (x_a - X_a) ∇N_aᵀ of element e (TetElements::DisplacementGradient), h[i][j] =
+// H(i, j).
+__attribute__((always_inline)) inline void DisplacementGradient(const WarpedPass& a, size_t e,
+                                                                double h[3][3]) {
+  const double* grad = a.gradients + 12 * e;
+  const int32_t* node = a.tets + 4 * e;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) h[i][j] = 0.0;
+  }
+  for (int c0 = 0; c0 < 4; ++c0) {
+    const auto k = 3 * static_cast<size_t>(node[c0]);
+    for (int i = 0; i < 3; ++i) {
+      const double u = a.x[k + static_cast<size_t>(i)] - a.rest[k + static_cast<size_t>(i)];
+      for (int j = 0; j < 3; ++j) h[i][j] += u * grad[3 * c0 + j];
+    }
+  }
+}
+
+// F = I + H of every element into f (9 × num_tets, column-major), for PolarRotations.
+__attribute__((always_inline)) inline void DeformationGradientsBody(const WarpedPass& a,
+                                                                    double* f) {
+  for (size_t e = 0; e < a.num_tets; ++e) {
+    double h[3][3];
+    DisplacementGradient(a, e, h);
+    double* out = f + 9 * e;
+    for (int j = 0; j < 3; ++j) {
+      for (int i = 0; i < 3; ++i) out[3 * j + i] = h[i][j] + (i == j ? 1.0 : 0.0);
+    }
+  }
+}
+
+void DeformationGradients(const WarpedPass& a, double* f) { DeformationGradientsBody(a, f); }
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+__attribute__((target("avx2,fma,avx512f,avx512vl"))) void DeformationGradientsAvx512(
+    const WarpedPass& a, double* f) {
+  DeformationGradientsBody(a, f);
+}
+#endif
+
 // Element e's part before its blocks: its nodal forces into a.forces, its rotated gradients
 // r_a = R ∇N_a (r[4][3]) and the blocks' factors V k λ, V k μ (k = k_scale g).
 // Always inlined, so that the AVX-512 pass compiles it for its target too (FMA).
@@ -356,15 +396,8 @@ __attribute__((always_inline)) inline void ElementForcesAndGradients(const Warpe
   const double* grad = a.gradients + 12 * e;  // ∇N_a at grad + 3a
   const double* rot = a.rotations + 9 * e;    // column-major R
   const int32_t* node = a.tets + 4 * e;
-  // H = F - I = Σ_a (x_a - X_a) ∇N_aᵀ (ElementStress), h[i][j] = H(i, j).
-  double h[3][3] = {};
-  for (int c0 = 0; c0 < 4; ++c0) {
-    const auto k = 3 * static_cast<size_t>(node[c0]);
-    for (int i = 0; i < 3; ++i) {
-      const double u = a.x[k + static_cast<size_t>(i)] - a.rest[k + static_cast<size_t>(i)];
-      for (int j = 0; j < 3; ++j) h[i][j] += u * grad[3 * c0 + j];
-    }
-  }
+  double h[3][3];
+  DisplacementGradient(a, e, h);
   // ε: linear sym(H); corotational sym((Rᵀ - I) + Rᵀ H) (ElementStress).
   double eps[3][3];
   if (a.linear) {
@@ -499,18 +532,6 @@ void FemModel::ForcesAndWarpedMatrix(const mesh::Points& x, double* forces, doub
   const auto m = static_cast<size_t>(num_tets());
   std::fill(forces, forces + 3 * static_cast<size_t>(num_nodes()), 0.0);
   matrix->SetZero();
-  // The rotations first, in batches (PolarRotations): F of each element into `rotations`,
-  // turned into R in place.
-  for (size_t e = 0; e < m; ++e) {
-    Eigen::Map<Matrix3d> out(rotations + 9 * e);
-    if (kind_ == FemKind::kLinear) {
-      out.setIdentity();
-    } else {
-      out =
-          Matrix3d::Identity() + elements_.DisplacementGradient(x, rest_, static_cast<int32_t>(e));
-    }
-  }
-  if (kind_ == FemKind::kCorotational) PolarRotations(rotations, quaternions, rotations, m);
   WarpedPass pass{};
   pass.x = x.data();
   pass.rest = rest_.data();
@@ -528,8 +549,25 @@ void FemModel::ForcesAndWarpedMatrix(const mesh::Points& x, double* forces, doub
   pass.mu = mu_;
   pass.k_scale = k_scale;
   pass.linear = kind_ == FemKind::kLinear;
+  const bool vector = CpuHasAvx512() && !force_scalar_element_pass_;
+  // The rotations first, in batches (PolarRotations): F of each element into `rotations`,
+  // turned into R in place.
+  if (kind_ == FemKind::kLinear) {
+    for (size_t e = 0; e < m; ++e) Eigen::Map<Matrix3d>(rotations + 9 * e).setIdentity();
+  } else {
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-  if (CpuHasAvx512() && !force_scalar_element_pass_) {
+    if (vector) {
+      DeformationGradientsAvx512(pass, rotations);
+    } else {
+      DeformationGradients(pass, rotations);
+    }
+#else
+    DeformationGradients(pass, rotations);
+#endif
+    PolarRotations(rotations, quaternions, rotations, m);
+  }
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+  if (vector) {
     ElementPassAvx512(pass);
   } else {
     ElementPass(pass);
