@@ -1,0 +1,207 @@
+#include "viewer/gl_view.h"
+
+#include <GL/freeglut.h>
+#include <GL/gl.h>
+#include <GL/glu.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <numbers>
+
+namespace somasim::viewer {
+
+namespace {
+
+// Organ colours (sRGB), by the organ's place in the session; the inner faces of cuts are pale.
+constexpr float kPalette[][3] = {{0.72F, 0.25F, 0.22F},  // liver red
+                                 {0.80F, 0.55F, 0.45F},
+                                 {0.45F, 0.60F, 0.30F},
+                                 {0.55F, 0.35F, 0.55F}};
+constexpr float kInnerFace[3] = {0.95F, 0.85F, 0.55F};
+constexpr float kBackground[3] = {0.10F, 0.11F, 0.13F};
+
+void Colour(const float* c) {
+  const GLfloat diffuse[4] = {c[0], c[1], c[2], 1.0F};
+  const GLfloat ambient[4] = {0.25F * c[0], 0.25F * c[1], 0.25F * c[2], 1.0F};
+  glMaterialfv(GL_FRONT_AND_BACK, GL_DIFFUSE, diffuse);
+  glMaterialfv(GL_FRONT_AND_BACK, GL_AMBIENT, ambient);
+}
+
+}  // namespace
+
+Eigen::Vector3d OrbitCamera::Eye() const {
+  const Eigen::Vector3d dir(std::cos(pitch) * std::cos(yaw), std::cos(pitch) * std::sin(yaw),
+                            std::sin(pitch));
+  return target + distance * dir;
+}
+
+void OrbitCamera::Fit(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi) {
+  target = 0.5 * (lo + hi);
+  const double radius = std::max(0.5 * (hi - lo).norm(), 1e-3);
+  distance = radius / std::sin(0.5 * fov_deg * std::numbers::pi / 180.0) * 1.05;
+  fitted = true;
+}
+
+void OrbitCamera::Orbit(double d_yaw, double d_pitch) {
+  yaw += d_yaw;
+  pitch = std::clamp(pitch + d_pitch, -1.5, 1.5);
+}
+
+void OrbitCamera::Zoom(double factor) {
+  if (factor > 0.0 && std::isfinite(factor)) distance = std::clamp(distance * factor, 1e-3, 1e3);
+}
+
+void OrbitCamera::Pan(double dx, double dy) {
+  const Eigen::Vector3d forward = (target - Eye()).normalized();
+  Eigen::Vector3d right = forward.cross(Eigen::Vector3d::UnitZ());
+  if (right.norm() < 1e-9) right = Eigen::Vector3d::UnitX();
+  right.normalize();
+  const Eigen::Vector3d up = right.cross(forward);
+  target += distance * (dx * right + dy * up);
+}
+
+bool GlView::Bounds(const SceneReceiver& scene, Eigen::Vector3d* lo, Eigen::Vector3d* hi) {
+  *lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
+  *hi = -*lo;
+  bool any = false;
+  for (const auto& [id, organ] : scene.organs()) {
+    const float* x = organ.positions();
+    for (uint32_t i = 0; i < organ.num_nodes; ++i) {
+      const Eigen::Vector3d p =
+          Eigen::Vector3f(x[3 * i], x[3 * i + 1], x[3 * i + 2]).cast<double>();
+      *lo = lo->cwiseMin(p);
+      *hi = hi->cwiseMax(p);
+      any = true;
+    }
+  }
+  return any;
+}
+
+void GlView::Draw(const SceneReceiver& scene, const OrbitCamera& camera, const Hud& hud, int width,
+                  int height) {
+  width = std::max(width, 1);
+  height = std::max(height, 1);
+  glViewport(0, 0, width, height);
+  glClearColor(kBackground[0], kBackground[1], kBackground[2], 1.0F);
+  glClear(GL_COLOR_BUFFER_BIT | GL_DEPTH_BUFFER_BIT);
+  glMatrixMode(GL_PROJECTION);
+  glLoadIdentity();
+  const double near = std::max(camera.distance * 0.01, 1e-4);
+  gluPerspective(camera.fov_deg, static_cast<double>(width) / height, near, camera.distance * 20.0);
+  glMatrixMode(GL_MODELVIEW);
+  glLoadIdentity();
+  // A headlight: the light sits at the eye (set before the view transform).
+  const GLfloat light_position[4] = {0.0F, 0.0F, 0.0F, 1.0F};
+  const GLfloat white[4] = {0.9F, 0.9F, 0.9F, 1.0F};
+  const GLfloat specular[4] = {0.25F, 0.25F, 0.25F, 1.0F};
+  glLightfv(GL_LIGHT0, GL_POSITION, light_position);
+  glLightfv(GL_LIGHT0, GL_DIFFUSE, white);
+  glLightfv(GL_LIGHT0, GL_SPECULAR, specular);
+  const Eigen::Vector3d eye = camera.Eye();
+  gluLookAt(eye.x(), eye.y(), eye.z(), camera.target.x(), camera.target.y(), camera.target.z(), 0.0,
+            0.0, 1.0);
+  glEnable(GL_DEPTH_TEST);
+  glEnable(GL_LIGHTING);
+  glEnable(GL_LIGHT0);
+  glEnable(GL_NORMALIZE);
+  glLightModeli(GL_LIGHT_MODEL_TWO_SIDE, GL_TRUE);
+  glShadeModel(GL_SMOOTH);
+  const GLfloat shine_specular[4] = {0.3F, 0.3F, 0.3F, 1.0F};
+  glMaterialfv(GL_FRONT_AND_BACK, GL_SPECULAR, shine_specular);
+  glMaterialf(GL_FRONT_AND_BACK, GL_SHININESS, 30.0F);
+  glEnableClientState(GL_VERTEX_ARRAY);
+  glEnableClientState(GL_NORMAL_ARRAY);
+  size_t index = 0;
+  for (const auto& [id, organ] : scene.organs()) {
+    OrganBuffers& b = buffers_[id];
+    if (b.topology_version != organ.topology_version || b.normals.size() != 3 * organ.num_nodes) {
+      b.topology_version = organ.topology_version;
+      b.outer.clear();
+      b.inner.clear();
+      for (size_t t = 0; 3 * t + 2 < organ.triangles.size(); ++t) {
+        std::vector<uint32_t>& to = organ.inner_face[t] != 0 ? b.inner : b.outer;
+        to.insert(to.end(), organ.triangles.begin() + static_cast<std::ptrdiff_t>(3 * t),
+                  organ.triangles.begin() + static_cast<std::ptrdiff_t>(3 * t + 3));
+      }
+      b.normals.assign(3 * static_cast<size_t>(organ.num_nodes), 0.0F);
+    }
+    // Area-weighted vertex normals from the positions shown (the cross product's length is
+    // twice the area).
+    const float* x = organ.positions();
+    std::fill(b.normals.begin(), b.normals.end(), 0.0F);
+    for (size_t t = 0; 3 * t + 2 < organ.triangles.size(); ++t) {
+      const uint32_t* v = organ.triangles.data() + 3 * t;
+      const Eigen::Vector3f a(x[3 * v[0]], x[3 * v[0] + 1], x[3 * v[0] + 2]);
+      const Eigen::Vector3f e1 = Eigen::Vector3f(x[3 * v[1]], x[3 * v[1] + 1], x[3 * v[1] + 2]) - a;
+      const Eigen::Vector3f e2 = Eigen::Vector3f(x[3 * v[2]], x[3 * v[2] + 1], x[3 * v[2] + 2]) - a;
+      const Eigen::Vector3f n = e1.cross(e2);
+      for (int k = 0; k < 3; ++k) {
+        float* out = b.normals.data() + 3 * static_cast<size_t>(v[k]);
+        out[0] += n.x();
+        out[1] += n.y();
+        out[2] += n.z();
+      }
+    }
+    glVertexPointer(3, GL_FLOAT, 0, x);
+    glNormalPointer(GL_FLOAT, 0, b.normals.data());
+    Colour(kPalette[index % std::size(kPalette)]);
+    if (!b.outer.empty()) {
+      glDrawElements(GL_TRIANGLES, static_cast<GLsizei>(b.outer.size()), GL_UNSIGNED_INT,
+                     b.outer.data());
+    }
+    if (!b.inner.empty()) {
+      Colour(kInnerFace);
+      glDrawElements(GL_TRIANGLES, static_cast<GLsizei>(b.inner.size()), GL_UNSIGNED_INT,
+                     b.inner.data());
+    }
+    ++index;
+  }
+  glDisableClientState(GL_NORMAL_ARRAY);
+  glDisableClientState(GL_VERTEX_ARRAY);
+  // The heads-up display in pixel coordinates.
+  glDisable(GL_LIGHTING);
+  glDisable(GL_DEPTH_TEST);
+  glMatrixMode(GL_PROJECTION);
+  glLoadIdentity();
+  gluOrtho2D(0.0, width, 0.0, height);
+  glMatrixMode(GL_MODELVIEW);
+  glLoadIdentity();
+  if (hud.server_gone) {  // dim the last image and say so
+    glEnable(GL_BLEND);
+    glBlendFunc(GL_SRC_ALPHA, GL_ONE_MINUS_SRC_ALPHA);
+    glColor4f(0.0F, 0.0F, 0.0F, 0.6F);
+    glRectf(0.0F, 0.0F, static_cast<float>(width), static_cast<float>(height));
+    glDisable(GL_BLEND);
+    glColor3f(1.0F, 0.35F, 0.3F);
+    glRasterPos2i(width / 2 - 120, height / 2);
+    glutBitmapString(GLUT_BITMAP_HELVETICA_18,
+                     reinterpret_cast<const unsigned char*>("SERVER GONE: no heartbeat"));
+  }
+  glColor3f(0.9F, 0.9F, 0.9F);
+  int y = height - 18;
+  for (const std::string& line : hud.lines) {
+    glRasterPos2i(8, y);
+    glutBitmapString(GLUT_BITMAP_8_BY_13, reinterpret_cast<const unsigned char*>(line.c_str()));
+    y -= 15;
+  }
+}
+
+render::Image GlView::ReadPixels(int width, int height) {
+  render::Image image;
+  image.width = width;
+  image.height = height;
+  image.rgb.resize(3 * static_cast<size_t>(width) * static_cast<size_t>(height));
+  glPixelStorei(GL_PACK_ALIGNMENT, 1);
+  glReadBuffer(GL_BACK);
+  std::vector<uint8_t> bottom_up(image.rgb.size());
+  glReadPixels(0, 0, width, height, GL_RGB, GL_UNSIGNED_BYTE, bottom_up.data());
+  const size_t row = 3 * static_cast<size_t>(width);
+  for (int r = 0; r < height; ++r) {
+    std::copy_n(bottom_up.data() + row * static_cast<size_t>(height - 1 - r), row,
+                image.rgb.data() + row * static_cast<size_t>(r));
+  }
+  return image;
+}
+
+}  // namespace somasim::viewer

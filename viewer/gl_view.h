@@ -1,0 +1,61 @@
+// Drawing a session with OpenGL (fixed-function, GL 1.5 vertex arrays: what Mesa's software
+// renderer under Xvfb and any station GPU both run): each organ's surface from its current
+// positions with smooth shading (per-vertex normals from those positions, area-weighted), a
+// colour per organ, the inner faces of cuts in a distinct colour; an orbit/pan/zoom camera; a
+// heads-up display. Needs a current GL context (GLUT's window); no DDS, no physics.
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "common/render/image.h"
+#include "viewer/scene_receiver.h"
+
+namespace somasim::viewer {
+
+// An orbit camera around `target`: yaw about the world z axis (up), pitch above the horizon.
+struct OrbitCamera {
+  Eigen::Vector3d target = Eigen::Vector3d::Zero();  // [m]
+  double distance = 0.5;                             // [m], > 0
+  double yaw = 0.6;                                  // [rad]
+  double pitch = 0.5;                                // [rad], within ±1.5
+  double fov_deg = 40.0;                             // vertical field of view
+  bool fitted = false;                               // set by Fit
+
+  Eigen::Vector3d Eye() const;
+  // Frames the box [lo, hi] [m]: target at its centre, distance so that it fills the view.
+  void Fit(const Eigen::Vector3d& lo, const Eigen::Vector3d& hi);
+  void Orbit(double d_yaw, double d_pitch);
+  void Zoom(double factor);        // distance × factor (factor > 0)
+  void Pan(double dx, double dy);  // in view-plane units of the distance
+};
+
+// The heads-up display's lines, drawn top left.
+struct Hud {
+  std::vector<std::string> lines;
+  bool server_gone = false;  // drawn as a banner over a dimmed scene, not as a frozen image
+};
+
+class GlView {
+ public:
+  // The box of every organ's shown positions; false when there is none.
+  static bool Bounds(const SceneReceiver& scene, Eigen::Vector3d* lo, Eigen::Vector3d* hi);
+  // Draws the scene into the current context's back buffer, width × height pixels.
+  void Draw(const SceneReceiver& scene, const OrbitCamera& camera, const Hud& hud, int width,
+            int height);
+  // The back buffer's pixels (after Draw, before the swap), top row first.
+  static render::Image ReadPixels(int width, int height);
+
+ private:
+  struct OrganBuffers {
+    uint32_t topology_version = 0;
+    std::vector<uint32_t> outer, inner;  // triangle corner indices by face kind
+    std::vector<float> normals;          // 3 × num_nodes
+  };
+  std::map<std::string, OrganBuffers> buffers_;
+};
+
+}  // namespace somasim::viewer

@@ -1,0 +1,166 @@
+#include "viewer/scene_receiver.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "common/wire/mesh_frame_view.h"
+
+namespace somasim::viewer {
+
+namespace {
+
+constexpr size_t kMaxMessages = 8;  // scenario messages kept for the heads-up display
+
+}  // namespace
+
+const float* OrganScene::positions() const {
+  return has_shape() ? decoder->positions().data() : rest.data();
+}
+
+SceneReceiver::SceneReceiver(const dds::Participant& participant, const dds::Topics& topics,
+                             const std::string& session) {
+  session_ = std::make_unique<dds::Reader<somasim_wire_SessionInfo>>(participant, topics.session,
+                                                                     dds::SessionQos(session));
+  topology_ = std::make_unique<dds::Reader<somasim_wire_OrganTopology>>(
+      participant, topics.topology, dds::TopologyQos(session));
+  frames_ = std::make_unique<dds::Reader<somasim_wire_MeshFrame>>(participant, topics.frame,
+                                                                  dds::FrameQos(session));
+  heartbeat_ = std::make_unique<dds::Reader<somasim_wire_Heartbeat>>(participant, topics.heartbeat,
+                                                                     dds::HeartbeatQos(session));
+  metrics_reader_ = std::make_unique<dds::Reader<somasim_wire_ServerMetrics>>(
+      participant, topics.metrics, dds::MetricsQos(session));
+  events_ = std::make_unique<dds::Reader<somasim_wire_SessionEvent>>(participant, topics.event,
+                                                                     dds::EventQos(session));
+}
+
+SceneReceiver::~SceneReceiver() = default;
+
+void SceneReceiver::SeeServer(uint64_t id) {
+  if (id == server_id_) return;
+  if (server_id_ != 0) ++counters_.server_restarts;
+  // A new server (a restart): what the old one published no longer holds.
+  server_id_ = id;
+  organs_.clear();
+  has_session_ = false;
+}
+
+void SceneReceiver::OnSession(const somasim_wire_SessionInfo& s) {
+  if (s.format_version != dds::kWireFormatVersion) {
+    ++counters_.wrong_format_version;
+    return;
+  }
+  SeeServer(s.server_id);
+  has_session_ = true;
+  scene_name_ = s.scene_name != nullptr ? s.scene_name : "";
+  organ_ids_.clear();
+  for (uint32_t k = 0; k < s.organs._length; ++k) {
+    const char* id = s.organs._buffer[k].id;
+    organ_ids_.emplace_back(id != nullptr ? id : "");
+  }
+}
+
+void SceneReceiver::OnTopology(const somasim_wire_OrganTopology& t) {
+  if (t.format_version != dds::kWireFormatVersion) {
+    ++counters_.wrong_format_version;
+    return;
+  }
+  const uint64_t n = t.num_nodes;
+  const uint64_t triangles = t.triangles._length / 3;
+  bool ok = t.organ != nullptr && n > 0 && n <= (1U << 24) && t.rest_positions._length == 3 * n &&
+            t.triangles._length % 3 == 0 && t.inner_face._length == triangles;
+  for (uint32_t k = 0; ok && k < t.triangles._length; ++k) ok = t.triangles._buffer[k] < n;
+  for (uint32_t k = 0; ok && k < t.rest_positions._length; ++k) {
+    ok = std::isfinite(t.rest_positions._buffer[k]);
+  }
+  if (!ok) {
+    ++counters_.bad_topologies;
+    return;
+  }
+  SeeServer(t.server_id);
+  OrganScene& o = organs_[t.organ];
+  if (o.decoder && o.topology_version == t.version && o.num_nodes == t.num_nodes) return;
+  o.topology_version = t.version;
+  o.num_nodes = t.num_nodes;
+  o.rest.assign(t.rest_positions._buffer, t.rest_positions._buffer + t.rest_positions._length);
+  o.triangles.assign(t.triangles._buffer, t.triangles._buffer + t.triangles._length);
+  o.inner_face.assign(t.inner_face._buffer, t.inner_face._buffer + t.inner_face._length);
+  o.decoder = std::make_unique<wire::FrameDecoder>(static_cast<int32_t>(t.num_nodes));
+}
+
+bool SceneReceiver::OnFrame(const somasim_wire_MeshFrame& f) {
+  if (f.format_version != dds::kWireFormatVersion) {
+    ++counters_.wrong_format_version;
+    return false;
+  }
+  if (f.organ == nullptr || f.server_id != server_id_) {
+    ++counters_.frames_waiting_for_topology;  // from a server whose topology is not here yet
+    return false;
+  }
+  const auto it = organs_.find(f.organ);
+  if (it == organs_.end() || !it->second.decoder ||
+      it->second.topology_version != f.topology_version) {
+    ++counters_.frames_waiting_for_topology;
+    return false;
+  }
+  OrganScene& o = it->second;
+  const wire::FrameDecoder::Result r = o.decoder->Apply(wire::ViewOf(f));
+  if (r == wire::FrameDecoder::Result::kBad) ++counters_.bad_frames;
+  if (r != wire::FrameDecoder::Result::kApplied) return false;
+  o.sim_time = f.sim_time;
+  ++o.frames_applied;
+  return true;
+}
+
+bool SceneReceiver::Poll() {
+  bool changed = false;
+  session_->Take(
+      [this](const somasim_wire_SessionInfo& s, const dds_sample_info_t&) { OnSession(s); });
+  topology_->Take([this, &changed](const somasim_wire_OrganTopology& t, const dds_sample_info_t&) {
+    OnTopology(t);
+    changed = true;
+  });
+  frames_->Take([this, &changed](const somasim_wire_MeshFrame& f,
+                                 const dds_sample_info_t&) { changed = OnFrame(f) || changed; },
+                256);
+  heartbeat_->Take([this](const somasim_wire_Heartbeat& h, const dds_sample_info_t&) {
+    if (h.format_version != dds::kWireFormatVersion) {
+      ++counters_.wrong_format_version;
+      return;
+    }
+    server_state_ = h.state;
+    sim_time_ = std::isfinite(h.sim_time) ? h.sim_time : sim_time_;
+    last_heartbeat_ = std::chrono::steady_clock::now();
+    has_heartbeat_ = true;
+  });
+  metrics_reader_->Take([this](const somasim_wire_ServerMetrics& m, const dds_sample_info_t&) {
+    if (m.format_version != dds::kWireFormatVersion) {
+      ++counters_.wrong_format_version;
+      return;
+    }
+    metrics_ = m;
+    has_metrics_ = true;
+  });
+  events_->Take([this](const somasim_wire_SessionEvent& e, const dds_sample_info_t&) {
+    if (e.format_version != dds::kWireFormatVersion || e.text == nullptr) {
+      ++counters_.wrong_format_version;
+      return;
+    }
+    messages_.emplace_back(e.text);
+    if (messages_.size() > kMaxMessages) messages_.erase(messages_.begin());
+  });
+  return changed;
+}
+
+bool SceneReceiver::complete() const {
+  if (!has_session_ || organ_ids_.empty()) return false;
+  return std::all_of(organ_ids_.begin(), organ_ids_.end(), [this](const std::string& id) {
+    const auto it = organs_.find(id);
+    return it != organs_.end() && it->second.has_shape();
+  });
+}
+
+bool SceneReceiver::server_gone(std::chrono::steady_clock::time_point now) const {
+  return !has_heartbeat_ || now - last_heartbeat_ > dds::kLease;
+}
+
+}  // namespace somasim::viewer

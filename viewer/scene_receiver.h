@@ -1,0 +1,102 @@
+// What a viewer knows of a session (SPEC §1): the session description, each organ's topology
+// (rest positions, surface triangles, inner-face marks, version) and its current shape from the
+// mesh frames (keyframes + deltas, wire::FrameDecoder), the server's heartbeat, metrics and
+// events. A thin DDS client: takes samples, checks them, never links the physics.
+//
+// Robustness (issue 8): a frame whose topology version the receiver has not seen waits (is
+// dropped until that topology arrives; the next keyframe after it converges); a new server id
+// (a restart) forgets every shape and topology; malformed samples (wrong format version,
+// sizes, indices out of range, non-finite values) are dropped and counted by kind; a heartbeat
+// silent for the lease means the server is gone.
+#pragma once
+
+#include <chrono>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "common/dds/topics.h"
+#include "common/wire/frame_codec.h"
+
+namespace somasim::viewer {
+
+struct OrganScene {
+  uint32_t topology_version = 0;
+  uint32_t num_nodes = 0;
+  std::vector<float> rest;          // [m] 3 × num_nodes
+  std::vector<uint32_t> triangles;  // 3 × T node indices (< num_nodes)
+  std::vector<uint8_t> inner_face;  // T: 1 = the inner face of a cut
+  std::unique_ptr<wire::FrameDecoder> decoder;
+  double sim_time = 0.0;  // [s] of the frame held
+  uint64_t frames_applied = 0;
+
+  bool has_shape() const { return decoder && decoder->has_shape(); }
+  // The positions to show: the last frame's, or the rest shape before the first keyframe.
+  const float* positions() const;
+};
+
+struct ReceiverCounters {
+  uint64_t bad_topologies = 0;
+  uint64_t bad_frames = 0;
+  uint64_t frames_waiting_for_topology = 0;
+  uint64_t wrong_format_version = 0;
+  uint64_t server_restarts = 0;
+};
+
+class SceneReceiver {
+ public:
+  // Readers in partition `session` of `participant` (which outlives the receiver). Creates no
+  // writer: a receiver publishes nothing.
+  SceneReceiver(const dds::Participant& participant, const dds::Topics& topics,
+                const std::string& session);
+  ~SceneReceiver();
+
+  // Takes everything that has arrived; true when an organ's shape or topology changed.
+  bool Poll();
+
+  bool has_session() const { return has_session_; }
+  uint64_t server_id() const { return server_id_; }
+  const std::string& scene_name() const { return scene_name_; }
+  const std::map<std::string, OrganScene>& organs() const { return organs_; }
+  // Every organ of the session description has a shape.
+  bool complete() const;
+  // The server's last heartbeat: state (1 starting, 2 running, 3 paused, 4 stopping), session
+  // time, and whether it is older than the lease (the server is gone).
+  uint32_t server_state() const { return server_state_; }
+  double sim_time() const { return sim_time_; }
+  bool server_gone(std::chrono::steady_clock::time_point now) const;
+  bool has_metrics() const { return has_metrics_; }
+  const somasim_wire_ServerMetrics& metrics() const { return metrics_; }
+  const std::vector<std::string>& messages() const { return messages_; }  // newest last
+  const ReceiverCounters& counters() const { return counters_; }
+
+ private:
+  void OnSession(const somasim_wire_SessionInfo& s);
+  void OnTopology(const somasim_wire_OrganTopology& t);
+  bool OnFrame(const somasim_wire_MeshFrame& f);
+  void SeeServer(uint64_t id);
+
+  std::unique_ptr<dds::Reader<somasim_wire_SessionInfo>> session_;
+  std::unique_ptr<dds::Reader<somasim_wire_OrganTopology>> topology_;
+  std::unique_ptr<dds::Reader<somasim_wire_MeshFrame>> frames_;
+  std::unique_ptr<dds::Reader<somasim_wire_Heartbeat>> heartbeat_;
+  std::unique_ptr<dds::Reader<somasim_wire_ServerMetrics>> metrics_reader_;
+  std::unique_ptr<dds::Reader<somasim_wire_SessionEvent>> events_;
+  bool has_session_ = false;
+  uint64_t server_id_ = 0;
+  std::string scene_name_;
+  std::vector<std::string> organ_ids_;  // the session description's organs
+  std::map<std::string, OrganScene> organs_;
+  uint32_t server_state_ = 0;
+  double sim_time_ = 0.0;
+  std::chrono::steady_clock::time_point last_heartbeat_{};
+  bool has_heartbeat_ = false;
+  bool has_metrics_ = false;
+  somasim_wire_ServerMetrics metrics_{};
+  std::vector<std::string> messages_;
+  ReceiverCounters counters_;
+};
+
+}  // namespace somasim::viewer

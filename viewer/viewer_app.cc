@@ -1,0 +1,320 @@
+#include "viewer/viewer_app.h"
+
+#include <GL/freeglut.h>
+
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <thread>
+
+#include "common/app/log.h"
+#include "common/app/signals.h"
+#include "common/dds/topics.h"
+#include "common/render/png_encoder.h"
+#include "viewer/gl_view.h"
+#include "viewer/scene_receiver.h"
+
+namespace somasim::viewer {
+
+namespace {
+
+using app::Log;
+using app::LogLevel;
+using Clock = std::chrono::steady_clock;
+
+struct ViewerOptions {
+  std::string session = "default";
+  uint32_t domain = 0;
+  std::string dds_config;
+  std::string screenshot;
+  int after_frames = 30;
+  std::string dump_positions;
+  int width = 960;
+  int height = 720;
+  double timeout = 0.0;  // [s]; 0 = none
+};
+
+// The one viewer of this process: GLUT's callbacks are plain functions.
+struct Viewer {
+  ViewerOptions options;
+  std::unique_ptr<dds::Domain> domain;
+  std::unique_ptr<dds::Participant> participant;
+  std::unique_ptr<dds::Topics> topics;
+  std::unique_ptr<SceneReceiver> receiver;
+  GlView view;
+  OrbitCamera camera;
+  int width = 0, height = 0;
+  int frames_with_scene = 0;  // frames drawn since every organ had a shape
+  Clock::time_point started = Clock::now();
+  int exit_code = kExitOk;
+  bool finished = false;
+  bool logged_complete = false;  // "scene_complete" is logged once every organ has a shape
+  // Mouse state.
+  int button = -1, last_x = 0, last_y = 0;
+};
+
+Viewer* g_viewer = nullptr;
+
+// DIR/<organ>.f32 and DIR/<organ>.frame for every organ with a shape; false on an I/O error.
+bool DumpPositions(const SceneReceiver& r, const std::string& dir) {
+  std::error_code error;
+  std::filesystem::create_directories(dir, error);
+  for (const auto& [id, organ] : r.organs()) {
+    if (!organ.has_shape()) continue;
+    std::ofstream data(dir + "/" + id + ".f32", std::ios::binary);
+    const auto p = organ.decoder->positions();
+    data.write(reinterpret_cast<const char*>(p.data()),
+               static_cast<std::streamsize>(p.size() * sizeof(float)));
+    std::ofstream frame(dir + "/" + id + ".frame");
+    frame << organ.decoder->frame() << "\n";
+    if (!data || !frame) return false;
+  }
+  return true;
+}
+
+void Finish(int code) {
+  Viewer& v = *g_viewer;
+  if (v.finished) return;
+  v.finished = true;
+  v.exit_code = code;
+  if (!v.options.dump_positions.empty()) {
+    if (DumpPositions(*v.receiver, v.options.dump_positions)) {
+      Log(LogLevel::kInfo, "dumped_positions", {{"dir", v.options.dump_positions}});
+    } else {
+      std::fprintf(stderr, "somasim-viewer: cannot write %s\n", v.options.dump_positions.c_str());
+      v.exit_code = kExitIo;
+    }
+  }
+  glutLeaveMainLoop();
+}
+
+Hud MakeHud(const Viewer& v) {
+  Hud hud;
+  const SceneReceiver& r = *v.receiver;
+  char line[256];
+  std::snprintf(line, sizeof line, "session %s  scene %s  t = %.2f s", v.options.session.c_str(),
+                r.scene_name().c_str(), r.sim_time());
+  hud.lines.emplace_back(line);
+  if (r.has_metrics()) {
+    const somasim_wire_ServerMetrics& m = r.metrics();
+    std::snprintf(line, sizeof line, "physics %.0f Hz  step p50 %.0f us  p99 %.0f us",
+                  m.physics_rate_hz, m.step_p50_us, m.step_p99_us);
+    hud.lines.emplace_back(line);
+  }
+  const ReceiverCounters& c = r.counters();
+  if (c.bad_frames + c.bad_topologies + c.wrong_format_version > 0) {
+    std::snprintf(line, sizeof line, "dropped: %llu bad frames, %llu bad topologies, %llu versions",
+                  static_cast<unsigned long long>(c.bad_frames),
+                  static_cast<unsigned long long>(c.bad_topologies),
+                  static_cast<unsigned long long>(c.wrong_format_version));
+    hud.lines.emplace_back(line);
+  }
+  if (!r.has_session()) hud.lines.emplace_back("waiting for the session...");
+  for (const std::string& message : r.messages()) hud.lines.push_back(message);
+  hud.server_gone = r.has_session() && r.server_gone(Clock::now());
+  return hud;
+}
+
+void Display() {
+  Viewer& v = *g_viewer;
+  if (v.finished) return;
+  if (!v.logged_complete && v.receiver->complete()) {
+    v.logged_complete = true;
+    Log(LogLevel::kInfo, "scene_complete",
+        {{"organs", v.receiver->organs().size()}, {"scene", v.receiver->scene_name()}});
+  }
+  if (!v.camera.fitted) {
+    Eigen::Vector3d lo, hi;
+    if (v.receiver->complete() && GlView::Bounds(*v.receiver, &lo, &hi)) v.camera.Fit(lo, hi);
+  }
+  v.view.Draw(*v.receiver, v.camera, MakeHud(v), v.width, v.height);
+  if (v.receiver->complete()) ++v.frames_with_scene;
+  if (!v.options.screenshot.empty() && v.frames_with_scene >= v.options.after_frames) {
+    glFinish();
+    const render::Image image = GlView::ReadPixels(v.width, v.height);
+    std::ofstream out(v.options.screenshot, std::ios::binary);
+    const std::string png = render::EncodePng(image);
+    out.write(png.data(), static_cast<std::streamsize>(png.size()));
+    if (!out) {
+      std::fprintf(stderr, "somasim-viewer: cannot write %s\n", v.options.screenshot.c_str());
+      Finish(kExitIo);
+      return;
+    }
+    Log(LogLevel::kInfo, "screenshot",
+        {{"file", v.options.screenshot}, {"frames", v.frames_with_scene}});
+    Finish(kExitOk);
+    return;
+  }
+  glutSwapBuffers();
+}
+
+void Idle() {
+  Viewer& v = *g_viewer;
+  if (v.finished) return;
+  if (app::StopRequested()) {
+    Finish(kExitOk);
+    return;
+  }
+  if (v.options.timeout > 0.0 &&
+      std::chrono::duration<double>(Clock::now() - v.started).count() > v.options.timeout) {
+    std::fprintf(stderr, "somasim-viewer: no complete scene of session \"%s\" within %.0f s\n",
+                 v.options.session.c_str(), v.options.timeout);
+    Finish(kExitTimeout);
+    return;
+  }
+  v.receiver->Poll();
+  glutPostRedisplay();
+  // The display rate is the frames' rate at most (60 Hz from the server); a short sleep keeps the
+  // loop from spinning on a core the station's haptic node may need.
+  std::this_thread::sleep_for(std::chrono::milliseconds(4));
+}
+
+void Reshape(int width, int height) {
+  g_viewer->width = std::max(width, 1);  // minimised: 0 × 0, drawn as 1 × 1
+  g_viewer->height = std::max(height, 1);
+}
+
+void Mouse(int button, int state, int x, int y) {
+  Viewer& v = *g_viewer;
+  if (button == 3 || button == 4) {  // wheel
+    if (state == GLUT_DOWN) v.camera.Zoom(button == 3 ? 0.9 : 1.0 / 0.9);
+    return;
+  }
+  v.button = state == GLUT_DOWN ? button : -1;
+  v.last_x = x;
+  v.last_y = y;
+}
+
+void Motion(int x, int y) {
+  Viewer& v = *g_viewer;
+  const double dx = static_cast<double>(x - v.last_x) / v.height;
+  const double dy = static_cast<double>(y - v.last_y) / v.height;
+  v.last_x = x;
+  v.last_y = y;
+  if (v.button == GLUT_LEFT_BUTTON) v.camera.Orbit(-3.0 * dx, 3.0 * dy);
+  if (v.button == GLUT_RIGHT_BUTTON) v.camera.Pan(-dx, dy);
+  if (v.button == GLUT_MIDDLE_BUTTON) v.camera.Zoom(std::exp(2.0 * dy));
+}
+
+void Keyboard(unsigned char key, int, int) {
+  Viewer& v = *g_viewer;
+  if (key == 'q' || key == 27) Finish(kExitOk);
+  if (key == 'f') v.camera.fitted = false;
+}
+
+// GLUT's fatal errors (no display, no visual): a clear message and our exit code.
+[[noreturn]] __attribute__((format(printf, 1, 0))) void GlutError(const char* format,
+                                                                  va_list args) {
+  std::fprintf(stderr, "somasim-viewer: OpenGL/GLUT: ");
+  std::vfprintf(stderr, format, args);
+  std::fprintf(stderr, "\n");
+  std::exit(kExitNoDisplay);
+}
+
+}  // namespace
+
+int ViewerMain(int argc, char** argv) {
+  app::SetLogProcess("viewer");
+  ViewerOptions options;
+  CLI::App cli{
+      "somasim-viewer: shows a somasim session from Cyclone DDS (OpenGL/freeglut).\n"
+      "Exit codes: 0 done, 2 usage, 4 I/O, 5 DDS, 6 no display, 7 timeout, 70 bug."};
+  cli.set_version_flag("--version", std::string("somasim-viewer ") + SOMASIM_VERSION);
+  cli.add_option("--session", options.session, "the session to join (its DDS partition)")
+      ->capture_default_str();
+  cli.add_option("--domain", options.domain, "DDS domain id")->check(CLI::Range(0, 232));
+  cli.add_option("--dds-config", options.dds_config,
+                 "Cyclone DDS XML configuration (deploy/cyclonedds-*.xml); default: "
+                 "CYCLONEDDS_URI or Cyclone's defaults");
+  cli.add_option("--screenshot", options.screenshot,
+                 "write a PNG of the view after --after-frames frames, then exit");
+  cli.add_option("--after-frames", options.after_frames,
+                 "frames drawn with every organ's shape before the screenshot")
+      ->check(CLI::Range(1, 1000000))
+      ->capture_default_str();
+  cli.add_option("--dump-positions", options.dump_positions,
+                 "when stopping, write each shown organ's positions to DIR/<organ>.f32 and its "
+                 "frame number to DIR/<organ>.frame");
+  cli.add_option("--width", options.width, "window width [pixels]")
+      ->check(CLI::Range(16, 8192))
+      ->capture_default_str();
+  cli.add_option("--height", options.height, "window height [pixels]")
+      ->check(CLI::Range(16, 8192))
+      ->capture_default_str();
+  cli.add_option("--timeout", options.timeout,
+                 "give up (exit 7) when no complete scene has been seen after this many "
+                 "seconds; 0 waits for ever")
+      ->check(CLI::Range(0.0, 86400.0));
+  try {
+    cli.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return cli.exit(e) == 0 ? kExitOk : kExitUsage;
+  }
+  if (const std::string bad = dds::SessionNameError(options.session); !bad.empty()) {
+    std::fprintf(stderr, "somasim-viewer: --session \"%s\" %s\n", options.session.c_str(),
+                 bad.c_str());
+    return kExitUsage;
+  }
+  app::InstallStopSignals();
+  Viewer viewer;
+  viewer.options = options;
+  try {
+    const std::string config = dds::ReadDdsConfig(options.dds_config);
+    if (!config.empty()) viewer.domain = std::make_unique<dds::Domain>(options.domain, config);
+    viewer.participant = std::make_unique<dds::Participant>(options.domain);
+    viewer.topics = std::make_unique<dds::Topics>(*viewer.participant);
+    viewer.receiver =
+        std::make_unique<SceneReceiver>(*viewer.participant, *viewer.topics, options.session);
+  } catch (const std::runtime_error& e) {
+    std::fprintf(stderr, "somasim-viewer: DDS: %s\n", e.what());
+    return kExitDds;
+  }
+  const char* display = std::getenv("DISPLAY");
+  if (display == nullptr || *display == '\0') {
+    std::fprintf(stderr,
+                 "somasim-viewer: no display (DISPLAY is unset); for off-screen rendering run "
+                 "it under Xvfb, e.g. xvfb-run -s '-screen 0 1280x1024x24' somasim-viewer ...\n");
+    return kExitNoDisplay;
+  }
+  g_viewer = &viewer;
+  Log(LogLevel::kInfo, "joining", {{"session", options.session}, {"domain", options.domain}});
+  // GLUT sees only the program's name: the options above are ours.
+  int glut_argc = 1;
+  char* glut_argv[] = {argv[0], nullptr};
+  glutInitErrorFunc(GlutError);
+  glutInit(&glut_argc, glut_argv);
+  glutInitDisplayMode(GLUT_RGB | GLUT_DOUBLE | GLUT_DEPTH);
+  glutInitWindowSize(options.width, options.height);
+  glutSetOption(GLUT_ACTION_ON_WINDOW_CLOSE, GLUT_ACTION_GLUTMAINLOOP_RETURNS);
+  const int window = glutCreateWindow(("somasim-viewer: " + options.session).c_str());
+  viewer.width = options.width;
+  viewer.height = options.height;
+  glutDisplayFunc(Display);
+  glutIdleFunc(Idle);
+  glutReshapeFunc(Reshape);
+  glutMouseFunc(Mouse);
+  glutMotionFunc(Motion);
+  glutKeyboardFunc(Keyboard);
+  glutMainLoop();
+  // The window was closed (or Finish left the loop): stop as on a signal.
+  if (!viewer.finished) Finish(kExitOk);
+  if (glutGetWindow() == window) glutDestroyWindow(window);
+  glutExit();  // frees GLUT's state and the GL context
+  const ReceiverCounters& c = viewer.receiver->counters();
+  Log(LogLevel::kInfo, "stopped",
+      {{"frames_drawn_with_scene", viewer.frames_with_scene},
+       {"bad_frames", c.bad_frames},
+       {"bad_topologies", c.bad_topologies},
+       {"wrong_format_version", c.wrong_format_version},
+       {"frames_waiting_for_topology", c.frames_waiting_for_topology},
+       {"server_restarts", c.server_restarts}});
+  g_viewer = nullptr;
+  return viewer.exit_code;
+}
+
+}  // namespace somasim::viewer
