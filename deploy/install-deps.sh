@@ -15,7 +15,7 @@ PACKAGES=(
   # mesh formats: XML (VTU) and zlib-compressed VTU blocks
   libpugixml-dev zlib1g-dev
   # viewer and its headless tests
-  freeglut3-dev libgl-dev libglu1-mesa-dev libpng-dev xvfb xauth
+  freeglut3-dev libgl-dev libglu1-mesa-dev libgl1-mesa-dri libpng-dev xvfb xauth
   # tests and benchmarks
   libgtest-dev libgmock-dev libbenchmark-dev libbullet-dev
   # an independent finite-element code the FEM is checked against (run as a program)

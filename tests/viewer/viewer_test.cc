@@ -32,7 +32,6 @@ namespace {
 
 using std::chrono::milliseconds;
 using std::chrono::seconds;
-using testing::BinPath;
 using testing::LoopbackConfigFile;
 using testing::ReadText;
 using testing::StartProgram;
