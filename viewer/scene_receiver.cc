@@ -107,6 +107,7 @@ bool SceneReceiver::OnFrame(const somasim_wire_MeshFrame& f) {
   if (r == wire::FrameDecoder::Result::kBad) ++counters_.bad_frames;
   if (r != wire::FrameDecoder::Result::kApplied) return false;
   o.sim_time = f.sim_time;
+  o.sender_time_ns = f.sender_time_ns;
   ++o.frames_applied;
   return true;
 }

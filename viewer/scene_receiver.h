@@ -29,7 +29,8 @@ struct OrganScene {
   std::vector<uint32_t> triangles;  // 3 × T node indices (< num_nodes)
   std::vector<uint8_t> inner_face;  // T: 1 = the inner face of a cut
   std::unique_ptr<wire::FrameDecoder> decoder;
-  double sim_time = 0.0;  // [s] of the frame held
+  double sim_time = 0.0;       // [s] of the frame held
+  int64_t sender_time_ns = 0;  // the server's steady clock when it wrote that frame
   uint64_t frames_applied = 0;
 
   bool has_shape() const { return decoder && decoder->has_shape(); }

@@ -3,14 +3,19 @@
 #include <GL/freeglut.h>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <memory>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "common/app/log.h"
 #include "common/app/signals.h"
@@ -37,6 +42,42 @@ struct ViewerOptions {
   int width = 960;
   int height = 720;
   double timeout = 0.0;  // [s]; 0 = none
+  int frames = 0;        // stop after this many frames of the complete scene; 0 = never
+  std::string report;    // JSON written when stopping ("" = none)
+};
+
+// The last kCapacity samples of a quantity [ms], for the display and the report.
+class Recent {
+ public:
+  static constexpr size_t kCapacity = 4096;
+  void Add(double value) {
+    if (values_.size() < kCapacity) {
+      values_.push_back(value);
+    } else {
+      values_[next_] = value;
+    }
+    next_ = (next_ + 1) % kCapacity;
+    ++count_;
+  }
+  // The q-quantile (0..1) of the last `window` samples (all when 0); NaN when there are none.
+  double Quantile(double q, size_t window = 0) const {
+    const size_t n = window == 0 ? values_.size() : std::min(window, values_.size());
+    if (n == 0) return std::nan("");
+    std::vector<double> v;
+    v.reserve(n);
+    for (size_t k = 0; k < n; ++k) {
+      v.push_back(values_[(next_ + values_.size() - 1 - k) % values_.size()]);
+    }
+    const auto at = v.begin() + static_cast<std::ptrdiff_t>(q * static_cast<double>(n - 1));
+    std::nth_element(v.begin(), at, v.end());
+    return *at;
+  }
+  uint64_t count() const { return count_; }
+
+ private:
+  std::vector<double> values_;
+  size_t next_ = 0;
+  uint64_t count_ = 0;
 };
 
 // The one viewer of this process: GLUT's callbacks are plain functions.
@@ -54,6 +95,12 @@ struct Viewer {
   int exit_code = kExitOk;
   bool finished = false;
   bool logged_complete = false;  // "scene_complete" is logged once every organ has a shape
+  // Frame time (between draws of the complete scene) and frame latency (a server frame's write
+  // to the end of the draw that first shows it; both clocks are the host's steady clock, so
+  // only meaningful when the server runs on the same host) [ms].
+  Recent frame_ms, latency_ms;
+  Clock::time_point last_draw{};
+  std::map<std::string, uint64_t> drawn_frame;  // per organ, the frame last drawn
   // Mouse state.
   int button = -1, last_x = 0, last_y = 0;
 };
@@ -90,6 +137,31 @@ void Finish(int code) {
       v.exit_code = kExitIo;
     }
   }
+  if (!v.options.report.empty()) {
+    const ReceiverCounters& c = v.receiver->counters();
+    nlohmann::ordered_json report = {{"session", v.options.session},
+                                     {"scene", v.receiver->scene_name()},
+                                     {"frames_drawn_with_scene", v.frames_with_scene},
+                                     {"frame_ms",
+                                      {{"samples", v.frame_ms.count()},
+                                       {"p50", v.frame_ms.Quantile(0.5)},
+                                       {"p99", v.frame_ms.Quantile(0.99)}}},
+                                     {"latency_ms",
+                                      {{"samples", v.latency_ms.count()},
+                                       {"p50", v.latency_ms.Quantile(0.5)},
+                                       {"p99", v.latency_ms.Quantile(0.99)}}},
+                                     {"bad_frames", c.bad_frames},
+                                     {"bad_topologies", c.bad_topologies},
+                                     {"wrong_format_version", c.wrong_format_version},
+                                     {"frames_waiting_for_topology", c.frames_waiting_for_topology},
+                                     {"server_restarts", c.server_restarts}};
+    std::ofstream out(v.options.report);
+    out << report.dump(2) << "\n";
+    if (!out) {
+      std::fprintf(stderr, "somasim-viewer: cannot write %s\n", v.options.report.c_str());
+      v.exit_code = kExitIo;
+    }
+  }
   glutLeaveMainLoop();
 }
 
@@ -104,6 +176,12 @@ Hud MakeHud(const Viewer& v) {
     const somasim_wire_ServerMetrics& m = r.metrics();
     std::snprintf(line, sizeof line, "physics %.0f Hz  step p50 %.0f us  p99 %.0f us",
                   m.physics_rate_hz, m.step_p50_us, m.step_p99_us);
+    hud.lines.emplace_back(line);
+  }
+  if (v.frame_ms.count() > 0) {
+    std::snprintf(line, sizeof line, "frame %.1f ms (p99 %.1f)  frame latency %.1f ms",
+                  v.frame_ms.Quantile(0.5, 120), v.frame_ms.Quantile(0.99, 120),
+                  v.latency_ms.count() > 0 ? v.latency_ms.Quantile(0.5, 120) : 0.0);
     hud.lines.emplace_back(line);
   }
   const ReceiverCounters& c = r.counters();
@@ -151,6 +229,25 @@ void Display() {
     return;
   }
   glutSwapBuffers();
+  if (v.receiver->complete()) {
+    glFinish();  // the frame is on screen (in Xvfb's framebuffer) before it is timed
+    const Clock::time_point now = Clock::now();
+    if (v.last_draw != Clock::time_point{}) {
+      v.frame_ms.Add(std::chrono::duration<double, std::milli>(now - v.last_draw).count());
+    }
+    v.last_draw = now;
+    const int64_t now_ns =
+        std::chrono::duration_cast<std::chrono::nanoseconds>(now.time_since_epoch()).count();
+    for (const auto& [id, organ] : v.receiver->organs()) {
+      if (!organ.has_shape()) continue;
+      uint64_t& drawn = v.drawn_frame[id];
+      if (organ.decoder->frame() == drawn) continue;
+      drawn = organ.decoder->frame();
+      const double latency = static_cast<double>(now_ns - organ.sender_time_ns) * 1e-6;
+      if (latency >= 0.0 && latency < 10000.0) v.latency_ms.Add(latency);  // same host only
+    }
+    if (v.options.frames > 0 && v.frames_with_scene >= v.options.frames) Finish(kExitOk);
+  }
 }
 
 void Idle() {
@@ -250,6 +347,13 @@ int ViewerMain(int argc, char** argv) {
                  "give up (exit 7) when no complete scene has been seen after this many "
                  "seconds; 0 waits for ever")
       ->check(CLI::Range(0.0, 86400.0));
+  cli.add_option("--frames", options.frames,
+                 "stop after drawing this many frames of the complete scene (0: run until "
+                 "stopped)")
+      ->check(CLI::Range(0, 100000000));
+  cli.add_option("--report", options.report,
+                 "when stopping, write a JSON report here: frame time and frame latency "
+                 "percentiles [ms], dropped samples");
   try {
     cli.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

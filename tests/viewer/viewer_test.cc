@@ -4,7 +4,7 @@
 // Xvfb against a real somasim-server over Cyclone DDS on loopback: a screenshot has organ pixels
 // where the organ is; a viewer that joins late shows exactly the server's last frame (its
 // --dump-positions equals the server's --dump-final byte for byte); bad command lines are
-// refused by name. Domains 170..179.
+// refused by name. Domains 196..199.
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/stat.h>
@@ -48,7 +48,7 @@ void SetSequence(T* seq, void* buffer, uint32_t length) {
 }
 
 struct Samples {
-  Samples() : domain(172, dds::LoopbackConfig()), participant(172), topics(participant) {}
+  Samples() : domain(196, dds::LoopbackConfig()), participant(196), topics(participant) {}
   dds::Domain domain;
   dds::Participant participant;
   dds::Topics topics;
@@ -311,10 +311,10 @@ TEST(ViewerProgram, ScreenshotHasOrganPixelsWhereTheOrganIs) {
   Xvfb x;
   ASSERT_TRUE(x.ok()) << "Xvfb did not start";
   const std::string dir = TempDir("shot");
-  auto server = StartProgram("somasim-server", ServerArgs("shot", 173, {"--duration", "30"}),
+  auto server = StartProgram("somasim-server", ServerArgs("shot", 197, {"--duration", "30"}),
                              dir + "/server.log");
   auto viewer = StartViewer(
-      ViewerArgs("shot", 173,
+      ViewerArgs("shot", 197,
                  {"--screenshot", dir + "/shot.png", "--after-frames", "10", "--timeout", "60"}),
       dir + "/viewer.log");
   ASSERT_EQ(viewer->Wait(seconds(90)), 0) << ReadText(dir + "/viewer.log");
@@ -356,10 +356,10 @@ TEST(ViewerProgram, LateViewerShowsExactlyTheServersLastFrame) {
   ASSERT_TRUE(x.ok()) << "Xvfb did not start";
   const std::string dir = TempDir("late");
   auto server =
-      StartProgram("somasim-server", ServerArgs("late", 174, {"--dump-final", dir + "/server"}),
+      StartProgram("somasim-server", ServerArgs("late", 198, {"--dump-final", dir + "/server"}),
                    dir + "/server.log");
   std::this_thread::sleep_for(milliseconds(1500));  // the viewer joins late
-  auto viewer = StartViewer(ViewerArgs("late", 174, {"--dump-positions", dir + "/viewer"}),
+  auto viewer = StartViewer(ViewerArgs("late", 198, {"--dump-positions", dir + "/viewer"}),
                             dir + "/viewer.log");
   // Until the viewer shows the whole scene (however slowly a loaded machine starts it), then a
   // little longer so that it follows deltas too.
@@ -396,13 +396,13 @@ TEST(ViewerProgram, RefusesBadCommandLinesByName) {
   EXPECT_EQ(run({"--session", "two words"}, "session.log"), 2);
   EXPECT_NE(ReadText(dir + "/session.log").find("--session"), std::string::npos);
   EXPECT_EQ(run({"--domain", "999"}, "domain.log"), 2);
-  EXPECT_EQ(run({"--dds-config", dir + "/missing.xml", "--domain", "175"}, "config.log"), 5)
+  EXPECT_EQ(run({"--dds-config", dir + "/missing.xml", "--domain", "199"}, "config.log"), 5)
       << ReadText(dir + "/config.log");
   // No display: a clear message, not a crash inside GLUT.
   const char* display = std::getenv("DISPLAY");
   const std::string saved = display != nullptr ? display : "";
   unsetenv("DISPLAY");
-  EXPECT_EQ(run({"--domain", "175"}, "display.log"), 6);
+  EXPECT_EQ(run({"--domain", "199"}, "display.log"), 6);
   EXPECT_NE(ReadText(dir + "/display.log").find("DISPLAY"), std::string::npos);
   if (!saved.empty()) setenv("DISPLAY", saved.c_str(), 1);
 }
