@@ -20,6 +20,9 @@ constexpr float kPalette[][3] = {{0.72F, 0.25F, 0.22F},  // liver red
                                  {0.55F, 0.35F, 0.55F}};
 constexpr float kInnerFace[3] = {0.95F, 0.85F, 0.55F};
 constexpr float kBackground[3] = {0.10F, 0.11F, 0.13F};
+constexpr float kMetal[3] = {0.70F, 0.72F, 0.78F};    // tools
+constexpr float kContact[3] = {1.00F, 0.85F, 0.10F};  // contact point and normal
+constexpr float kGrasp[3] = {0.20F, 0.85F, 0.30F};    // grasp anchor
 
 void Colour(const float* c) {
   const GLfloat diffuse[4] = {c[0], c[1], c[2], 1.0F};
@@ -159,6 +162,7 @@ void GlView::Draw(const SceneReceiver& scene, const OrbitCamera& camera, const H
   }
   glDisableClientState(GL_NORMAL_ARRAY);
   glDisableClientState(GL_VERTEX_ARRAY);
+  DrawTools(scene);
   // The heads-up display in pixel coordinates.
   glDisable(GL_LIGHTING);
   glDisable(GL_DEPTH_TEST);
@@ -185,6 +189,58 @@ void GlView::Draw(const SceneReceiver& scene, const OrbitCamera& camera, const H
     glutBitmapString(GLUT_BITMAP_8_BY_13, reinterpret_cast<const unsigned char*>(line.c_str()));
     y -= 15;
   }
+}
+
+void GlView::DrawTools(const SceneReceiver& scene) {
+  if (quadric_ == nullptr) quadric_ = gluNewQuadric();
+  GLUquadric* q = quadric_;
+  const auto sphere = [q](const double* at, double radius, const float* colour) {
+    Colour(colour);
+    glPushMatrix();
+    glTranslated(at[0], at[1], at[2]);
+    gluSphere(q, radius, 16, 12);
+    glPopMatrix();
+  };
+  for (const auto& [id, tool] : scene.tools()) {
+    if (!tool.has_pose || tool.kind == "camera") continue;
+    // The tool frame: the tip at the origin, the shaft along +z (column-major for GL).
+    const Eigen::Quaterniond rotation(tool.orientation[0], tool.orientation[1], tool.orientation[2],
+                                      tool.orientation[3]);
+    const Eigen::Matrix3d r = rotation.norm() > 1e-9 ? rotation.normalized().toRotationMatrix()
+                                                     : Eigen::Matrix3d::Identity();
+    double frame[16] = {};
+    for (int c = 0; c < 3; ++c) {
+      for (int k = 0; k < 3; ++k) frame[4 * c + k] = r(k, c);
+      frame[12 + c] = tool.position[c];
+    }
+    frame[15] = 1.0;
+    const double radius = std::max(tool.shaft_radius, 0.001);  // [m] at least 1 mm on screen
+    const double length = tool.shaft_length > 0.0 ? tool.shaft_length : 0.1;
+    glPushMatrix();
+    glMultMatrixd(frame);
+    Colour(kMetal);
+    gluCylinder(q, radius, radius, length, 16, 1);
+    gluSphere(q, radius * 1.2, 16, 12);
+    glPopMatrix();
+    if (tool.in_contact) {
+      sphere(tool.contact_point, radius * 1.1, kContact);
+      // The contact normal, 1 cm, as a line.
+      glDisable(GL_LIGHTING);
+      glColor3fv(kContact);
+      glBegin(GL_LINES);
+      glVertex3dv(tool.contact_point);
+      glVertex3d(tool.contact_point[0] + 0.01 * tool.normal[0],
+                 tool.contact_point[1] + 0.01 * tool.normal[1],
+                 tool.contact_point[2] + 0.01 * tool.normal[2]);
+      glEnd();
+      glEnable(GL_LIGHTING);
+    }
+    if (tool.grasping) sphere(tool.grasp_anchor, radius * 1.1, kGrasp);
+  }
+}
+
+GlView::~GlView() {
+  if (quadric_ != nullptr) gluDeleteQuadric(quadric_);
 }
 
 render::Image GlView::ReadPixels(int width, int height) {

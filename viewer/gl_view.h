@@ -5,6 +5,8 @@
 // heads-up display. Needs a current GL context (GLUT's window); no DDS, no physics.
 #pragma once
 
+#include <GL/glu.h>
+
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <map>
@@ -41,6 +43,10 @@ struct Hud {
 
 class GlView {
  public:
+  GlView() = default;
+  ~GlView();
+  GlView(const GlView&) = delete;
+  GlView& operator=(const GlView&) = delete;
   // The box of every organ's shown positions; false when there is none.
   static bool Bounds(const SceneReceiver& scene, Eigen::Vector3d* lo, Eigen::Vector3d* hi);
   // Draws the scene into the current context's back buffer, width × height pixels.
@@ -55,7 +61,12 @@ class GlView {
     std::vector<uint32_t> outer, inner;  // triangle corner indices by face kind
     std::vector<float> normals;          // 3 × num_nodes
   };
+  // Each tool with a pose: its shaft and tip (metal), its contact point and normal (yellow), its
+  // grasp anchor (green).
+  void DrawTools(const SceneReceiver& scene);
+
   std::map<std::string, OrganBuffers> buffers_;
+  GLUquadric* quadric_ = nullptr;  // made on the first draw (needs the GL context)
 };
 
 }  // namespace somasim::viewer

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <iterator>
 
 #include "common/wire/mesh_frame_view.h"
 
@@ -31,6 +32,10 @@ SceneReceiver::SceneReceiver(const dds::Participant& participant, const dds::Top
       participant, topics.metrics, dds::MetricsQos(session));
   events_ = std::make_unique<dds::Reader<somasim_wire_SessionEvent>>(participant, topics.event,
                                                                      dds::EventQos(session));
+  tool_commands_ = std::make_unique<dds::Reader<somasim_wire_ToolCommand>>(
+      participant, topics.tool_command, dds::ToolCommandQos(session));
+  force_models_ = std::make_unique<dds::Reader<somasim_wire_ForceModel>>(
+      participant, topics.force_model, dds::ForceModelQos(session));
 }
 
 SceneReceiver::~SceneReceiver() = default;
@@ -41,6 +46,7 @@ void SceneReceiver::SeeServer(uint64_t id) {
   // A new server (a restart): what the old one published no longer holds.
   server_id_ = id;
   organs_.clear();
+  tools_.clear();
   has_session_ = false;
 }
 
@@ -52,6 +58,17 @@ void SceneReceiver::OnSession(const somasim_wire_SessionInfo& s) {
   SeeServer(s.server_id);
   has_session_ = true;
   scene_name_ = s.scene_name != nullptr ? s.scene_name : "";
+  for (uint32_t k = 0; k < s.tools._length; ++k) {
+    const somasim_wire_ToolInfo& info = s.tools._buffer[k];
+    if (info.id == nullptr) continue;
+    ToolScene& tool = tools_[info.id];
+    tool.kind = info.kind != nullptr ? info.kind : "";
+    const bool sane = std::isfinite(info.shaft_length) && std::isfinite(info.shaft_radius) &&
+                      info.shaft_length >= 0.0 && info.shaft_length < 10.0 &&
+                      info.shaft_radius >= 0.0 && info.shaft_radius < 1.0;
+    tool.shaft_length = sane ? info.shaft_length : 0.0;
+    tool.shaft_radius = sane ? info.shaft_radius : 0.0;
+  }
   organ_ids_.clear();
   for (uint32_t k = 0; k < s.organs._length; ++k) {
     const char* id = s.organs._buffer[k].id;
@@ -148,6 +165,51 @@ bool SceneReceiver::Poll() {
     }
     messages_.emplace_back(e.text);
     if (messages_.size() > kMaxMessages) messages_.erase(messages_.begin());
+  });
+  tool_commands_->Take(
+      [this](const somasim_wire_ToolCommand& c, const dds_sample_info_t&) {
+        if (c.format_version != dds::kWireFormatVersion || c.tool == nullptr) {
+          ++counters_.wrong_format_version;
+          return;
+        }
+        const auto it = tools_.find(c.tool);
+        if (it == tools_.end()) return;  // not a tool of this session
+        bool finite = std::isfinite(c.jaw_closure);
+        for (const double v : c.position) finite = finite && std::isfinite(v);
+        for (const double v : c.orientation) finite = finite && std::isfinite(v);
+        if (!finite) {
+          ++counters_.bad_tool_samples;
+          return;
+        }
+        ToolScene& t = it->second;
+        std::copy(std::begin(c.position), std::end(c.position), t.position);
+        std::copy(std::begin(c.orientation), std::end(c.orientation), t.orientation);
+        t.jaw_closure = std::clamp(c.jaw_closure, 0.0, 1.0);
+        t.has_pose = true;
+        t.last_command = std::chrono::steady_clock::now();
+      },
+      256);
+  force_models_->Take([this](const somasim_wire_ForceModel& m, const dds_sample_info_t&) {
+    if (m.format_version != dds::kWireFormatVersion || m.tool == nullptr) {
+      ++counters_.wrong_format_version;
+      return;
+    }
+    const auto it = tools_.find(m.tool);
+    if (it == tools_.end() || m.server_id != server_id_) return;
+    bool finite = true;
+    for (const double v : m.contact_point) finite = finite && std::isfinite(v);
+    for (const double v : m.normal) finite = finite && std::isfinite(v);
+    for (const double v : m.grasp_anchor) finite = finite && std::isfinite(v);
+    if (!finite) {
+      ++counters_.bad_tool_samples;
+      return;
+    }
+    ToolScene& t = it->second;
+    t.in_contact = m.in_contact;
+    std::copy(std::begin(m.contact_point), std::end(m.contact_point), t.contact_point);
+    std::copy(std::begin(m.normal), std::end(m.normal), t.normal);
+    t.grasping = m.grasping;
+    std::copy(std::begin(m.grasp_anchor), std::end(m.grasp_anchor), t.grasp_anchor);
   });
   return changed;
 }

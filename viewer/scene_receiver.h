@@ -38,12 +38,31 @@ struct OrganScene {
   const float* positions() const;
 };
 
+// A tool of the session: its shape (session description), its last commanded pose (from
+// whichever station drives it) and the server's last local force model for it.
+struct ToolScene {
+  std::string kind;            // "probe", "grasper", "scalpel", "camera"
+  double shaft_length = 0.0;   // [m]
+  double shaft_radius = 0.0;   // [m]
+  bool has_pose = false;
+  double position[3] = {};     // [m] the tip
+  double orientation[4] = {1.0, 0.0, 0.0, 0.0};  // w x y z, shaft along the tool's +z
+  double jaw_closure = 0.0;    // 0 open .. 1 closed
+  std::chrono::steady_clock::time_point last_command{};
+  bool in_contact = false;
+  double contact_point[3] = {};  // [m]
+  double normal[3] = {};         // outward, unit
+  bool grasping = false;
+  double grasp_anchor[3] = {};   // [m]
+};
+
 struct ReceiverCounters {
   uint64_t bad_topologies = 0;
   uint64_t bad_frames = 0;
   uint64_t frames_waiting_for_topology = 0;
   uint64_t wrong_format_version = 0;
   uint64_t server_restarts = 0;
+  uint64_t bad_tool_samples = 0;  // tool commands or force models with non-finite values
 };
 
 class SceneReceiver {
@@ -61,6 +80,7 @@ class SceneReceiver {
   uint64_t server_id() const { return server_id_; }
   const std::string& scene_name() const { return scene_name_; }
   const std::map<std::string, OrganScene>& organs() const { return organs_; }
+  const std::map<std::string, ToolScene>& tools() const { return tools_; }
   // Every organ of the session description has a shape.
   bool complete() const;
   // The server's last heartbeat: state (1 starting, 2 running, 3 paused, 4 stopping), session
@@ -85,11 +105,14 @@ class SceneReceiver {
   std::unique_ptr<dds::Reader<somasim_wire_Heartbeat>> heartbeat_;
   std::unique_ptr<dds::Reader<somasim_wire_ServerMetrics>> metrics_reader_;
   std::unique_ptr<dds::Reader<somasim_wire_SessionEvent>> events_;
+  std::unique_ptr<dds::Reader<somasim_wire_ToolCommand>> tool_commands_;
+  std::unique_ptr<dds::Reader<somasim_wire_ForceModel>> force_models_;
   bool has_session_ = false;
   uint64_t server_id_ = 0;
   std::string scene_name_;
   std::vector<std::string> organ_ids_;  // the session description's organs
   std::map<std::string, OrganScene> organs_;
+  std::map<std::string, ToolScene> tools_;
   uint32_t server_state_ = 0;
   double sim_time_ = 0.0;
   std::chrono::steady_clock::time_point last_heartbeat_{};

@@ -41,9 +41,12 @@ struct ViewerOptions {
   std::string dump_positions;
   int width = 960;
   int height = 720;
-  double timeout = 0.0;  // [s]; 0 = none
-  int frames = 0;        // stop after this many frames of the complete scene; 0 = never
-  std::string report;    // JSON written when stopping ("" = none)
+  double timeout = 0.0;            // [s]; 0 = none
+  bool observe = false;            // observe-only: never publishes tool commands
+  std::string drive;               // station: drive this tool from the start ("" = on 't')
+  std::string station = "viewer";  // the station name in tool commands and logs
+  int frames = 0;                  // stop after this many frames of the complete scene; 0 = never
+  std::string report;              // JSON written when stopping ("" = none)
 };
 
 // The last kCapacity samples of a quantity [ms], for the display and the report.
@@ -87,6 +90,15 @@ struct Viewer {
   std::unique_ptr<dds::Participant> participant;
   std::unique_ptr<dds::Topics> topics;
   std::unique_ptr<SceneReceiver> receiver;
+  // Station mode only: the tool command writer (made when driving starts). Observe-only mode:
+  // only the instructor command writer. Neither exists until it is used.
+  std::unique_ptr<dds::Writer<somasim_wire_ToolCommand>> tool_writer;
+  std::unique_ptr<dds::Writer<somasim_wire_InstructorCommand>> instructor_writer;
+  std::string driving;                            // the tool the keyboard drives ("" = none)
+  Eigen::Vector3d tip = Eigen::Vector3d::Zero();  // [m]
+  double jaw_closure = 0.0;
+  uint64_t tool_seq = 0, instructor_seq = 0;
+  Clock::time_point last_command{};
   GlView view;
   OrbitCamera camera;
   int width = 0, height = 0;
@@ -165,6 +177,62 @@ void Finish(int code) {
   glutLeaveMainLoop();
 }
 
+// Station mode: the keyboard drives `tool` (a tool of the session), its tip starting 2 cm above
+// the organs' top centre, shaft up.
+void StartDriving(Viewer& v, const std::string& tool) {
+  if (v.options.observe || !v.driving.empty()) return;
+  const auto it = v.receiver->tools().find(tool);
+  if (it == v.receiver->tools().end() || it->second.kind == "camera") {
+    Log(LogLevel::kWarning, "no_such_tool", {{"tool", tool}});
+    return;
+  }
+  Eigen::Vector3d lo, hi;
+  if (!GlView::Bounds(*v.receiver, &lo, &hi)) return;  // no organ yet: the next tick retries
+  v.tip = Eigen::Vector3d(0.5 * (lo.x() + hi.x()), 0.5 * (lo.y() + hi.y()), hi.z() + 0.02);
+  if (!v.tool_writer) {
+    v.tool_writer = std::make_unique<dds::Writer<somasim_wire_ToolCommand>>(
+        *v.participant, v.topics->tool_command, dds::ToolCommandQos(v.options.session));
+  }
+  v.driving = tool;
+  Log(LogLevel::kInfo, "driving", {{"tool", tool}, {"station", v.options.station}});
+}
+
+// The driven tool's command, at most every 10 ms (the tool command's lease is 500 ms).
+void PublishTool(Viewer& v) {
+  if (v.driving.empty()) return;
+  const Clock::time_point now = Clock::now();
+  if (now - v.last_command < std::chrono::milliseconds(10)) return;
+  v.last_command = now;
+  somasim_wire_ToolCommand c{};
+  c.tool = dds::CString(v.driving);
+  c.format_version = dds::kWireFormatVersion;
+  c.station = dds::CString(v.options.station);
+  c.seq = ++v.tool_seq;
+  c.sender_time_ns =
+      std::chrono::duration_cast<std::chrono::nanoseconds>(now.time_since_epoch()).count();
+  for (int k = 0; k < 3; ++k) c.position[k] = v.tip[k];
+  c.orientation[0] = 1.0;  // shaft along +z
+  c.jaw_closure = v.jaw_closure;
+  v.tool_writer->Write(c);
+}
+
+// Observe-only mode: an instructor command (1 pause, 2 resume).
+void Instruct(Viewer& v, uint32_t kind) {
+  if (!v.options.observe) return;
+  if (!v.instructor_writer) {
+    v.instructor_writer = std::make_unique<dds::Writer<somasim_wire_InstructorCommand>>(
+        *v.participant, v.topics->instructor, dds::InstructorQos(v.options.session));
+  }
+  somasim_wire_InstructorCommand c{};
+  c.format_version = dds::kWireFormatVersion;
+  c.seq = ++v.instructor_seq;
+  c.instructor = dds::CString(v.options.station);
+  c.kind = kind;
+  c.text = dds::CString(std::string());
+  v.instructor_writer->Write(c);
+  Log(LogLevel::kInfo, "instructor_command", {{"kind", kind}});
+}
+
 Hud MakeHud(const Viewer& v) {
   Hud hud;
   const SceneReceiver& r = *v.receiver;
@@ -190,6 +258,16 @@ Hud MakeHud(const Viewer& v) {
                   static_cast<unsigned long long>(c.bad_frames),
                   static_cast<unsigned long long>(c.bad_topologies),
                   static_cast<unsigned long long>(c.wrong_format_version));
+    hud.lines.emplace_back(line);
+  }
+  if (v.options.observe) {
+    hud.lines.emplace_back("observe-only: p pause, r resume");
+  } else if (v.driving.empty()) {
+    hud.lines.emplace_back("station: t drives a tool with the keys");
+  } else {
+    std::snprintf(line, sizeof line,
+                  "driving %s at (%.0f, %.0f, %.0f) mm: arrows, PgUp/PgDn, c jaws",
+                  v.driving.c_str(), 1e3 * v.tip.x(), 1e3 * v.tip.y(), 1e3 * v.tip.z());
     hud.lines.emplace_back(line);
   }
   if (!r.has_session()) hud.lines.emplace_back("waiting for the session...");
@@ -265,6 +343,10 @@ void Idle() {
     return;
   }
   v.receiver->Poll();
+  if (!v.options.drive.empty() && v.driving.empty() && v.receiver->complete()) {
+    StartDriving(v, v.options.drive);
+  }
+  PublishTool(v);
   glutPostRedisplay();
   // The display rate is the frames' rate at most (60 Hz from the server); a short sleep keeps the
   // loop from spinning on a core the station's haptic node may need.
@@ -302,6 +384,36 @@ void Keyboard(unsigned char key, int, int) {
   Viewer& v = *g_viewer;
   if (key == 'q' || key == 27) Finish(kExitOk);
   if (key == 'f') v.camera.fitted = false;
+  if (key == 'p') Instruct(v, 1);
+  if (key == 'r') Instruct(v, 2);
+  if (key == 'c' && !v.driving.empty()) v.jaw_closure = v.jaw_closure > 0.5 ? 0.0 : 1.0;
+  if (key == 't' && v.driving.empty()) {
+    for (const auto& [id, tool] : v.receiver->tools()) {
+      if (tool.kind != "camera") {
+        StartDriving(v, id);
+        break;
+      }
+    }
+  }
+}
+
+// Station driving: arrows move the tip in the view plane, Page Up / Down along the view, 1 mm
+// a press (5 mm with Shift).
+void Special(int key, int, int) {
+  Viewer& v = *g_viewer;
+  if (v.driving.empty()) return;
+  const double step = (glutGetModifiers() & GLUT_ACTIVE_SHIFT) != 0 ? 0.005 : 0.001;  // [m]
+  const Eigen::Vector3d forward = (v.camera.target - v.camera.Eye()).normalized();
+  Eigen::Vector3d right = forward.cross(Eigen::Vector3d::UnitZ());
+  if (right.norm() < 1e-9) right = Eigen::Vector3d::UnitX();
+  right.normalize();
+  const Eigen::Vector3d up = right.cross(forward);
+  if (key == GLUT_KEY_LEFT) v.tip -= step * right;
+  if (key == GLUT_KEY_RIGHT) v.tip += step * right;
+  if (key == GLUT_KEY_UP) v.tip += step * up;
+  if (key == GLUT_KEY_DOWN) v.tip -= step * up;
+  if (key == GLUT_KEY_PAGE_UP) v.tip += step * forward;
+  if (key == GLUT_KEY_PAGE_DOWN) v.tip -= step * forward;
 }
 
 // GLUT's fatal errors (no display, no visual): a clear message and our exit code.
@@ -347,6 +459,15 @@ int ViewerMain(int argc, char** argv) {
                  "give up (exit 7) when no complete scene has been seen after this many "
                  "seconds; 0 waits for ever")
       ->check(CLI::Range(0.0, 86400.0));
+  cli.add_flag("--observe", options.observe,
+               "observe-only (instructors): never publishes tool commands; p pauses and r "
+               "resumes the session");
+  cli.add_option("--drive", options.drive,
+                 "station: drive this tool with the keyboard from the start (else t starts "
+                 "driving the first tool)");
+  cli.add_option("--station", options.station,
+                 "this station's name (a pseudonym) in tool and instructor commands")
+      ->capture_default_str();
   cli.add_option("--frames", options.frames,
                  "stop after drawing this many frames of the complete scene (0: run until "
                  "stopped)")
@@ -358,6 +479,10 @@ int ViewerMain(int argc, char** argv) {
     cli.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return cli.exit(e) == 0 ? kExitOk : kExitUsage;
+  }
+  if (options.observe && !options.drive.empty()) {
+    std::fprintf(stderr, "somasim-viewer: --drive and --observe exclude each other\n");
+    return kExitUsage;
   }
   if (const std::string bad = dds::SessionNameError(options.session); !bad.empty()) {
     std::fprintf(stderr, "somasim-viewer: --session \"%s\" %s\n", options.session.c_str(),
@@ -404,6 +529,7 @@ int ViewerMain(int argc, char** argv) {
   glutMouseFunc(Mouse);
   glutMotionFunc(Motion);
   glutKeyboardFunc(Keyboard);
+  glutSpecialFunc(Special);
   glutMainLoop();
   // The window was closed (or Finish left the loop): stop as on a signal.
   if (!viewer.finished) Finish(kExitOk);

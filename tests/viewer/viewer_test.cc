@@ -4,7 +4,8 @@
 // Xvfb against a real somasim-server over Cyclone DDS on loopback: a screenshot has organ pixels
 // where the organ is; a viewer that joins late shows exactly the server's last frame (its
 // --dump-positions equals the server's --dump-final byte for byte); bad command lines are
-// refused by name. Domains 196..199.
+// refused by name; an observe-only viewer has no writer on any topic; a station drives a tool
+// without an arm. Domains 194..199.
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/stat.h>
@@ -385,6 +386,121 @@ TEST(ViewerProgram, LateViewerShowsExactlyTheServersLastFrame) {
   EXPECT_EQ(0, std::memcmp(shown.data(), expected.data(), shown.size() * sizeof(float)));
 }
 
+// Readers on every topic of a session, in the test's own participant.
+struct AllTopics {
+  AllTopics(uint32_t id, const std::string& session)
+      : domain(id, dds::LoopbackConfig()),
+        participant(id),
+        topics(participant),
+        session_info(participant, topics.session, dds::SessionQos(session)),
+        topology(participant, topics.topology, dds::TopologyQos(session)),
+        frame(participant, topics.frame, dds::FrameQos(session)),
+        tool_command(participant, topics.tool_command, dds::ToolCommandQos(session)),
+        force_model(participant, topics.force_model, dds::ForceModelQos(session)),
+        event(participant, topics.event, dds::EventQos(session)),
+        instructor(participant, topics.instructor, dds::InstructorQos(session)),
+        heartbeat(participant, topics.heartbeat, dds::HeartbeatQos(session)),
+        metrics(participant, topics.metrics, dds::MetricsQos(session)) {}
+  // Writers matched on each topic, in Topics' order.
+  std::vector<int32_t> Writers() {
+    return {session_info.Status().matched_writers, topology.Status().matched_writers,
+            frame.Status().matched_writers,        tool_command.Status().matched_writers,
+            force_model.Status().matched_writers,  event.Status().matched_writers,
+            instructor.Status().matched_writers,   heartbeat.Status().matched_writers,
+            metrics.Status().matched_writers};
+  }
+  dds::Domain domain;
+  dds::Participant participant;
+  dds::Topics topics;
+  dds::Reader<somasim_wire_SessionInfo> session_info;
+  dds::Reader<somasim_wire_OrganTopology> topology;
+  dds::Reader<somasim_wire_MeshFrame> frame;
+  dds::Reader<somasim_wire_ToolCommand> tool_command;
+  dds::Reader<somasim_wire_ForceModel> force_model;
+  dds::Reader<somasim_wire_SessionEvent> event;
+  dds::Reader<somasim_wire_InstructorCommand> instructor;
+  dds::Reader<somasim_wire_Heartbeat> heartbeat;
+  dds::Reader<somasim_wire_ServerMetrics> metrics;
+};
+
+bool WaitForLog(const std::string& path, const std::string& event) {
+  for (int i = 0; i < 3000; ++i) {
+    if (ReadText(path).find(event) != std::string::npos) return true;
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  return false;
+}
+
+// An instructor's observe-only viewer, showing the session, has no writer on any topic: every
+// topic has exactly the server's writers, and nothing arrives on the two the server never
+// writes (tool and instructor commands).
+TEST(ViewerProgram, ObserveOnlyPublishesNothing) {
+  Xvfb x;
+  ASSERT_TRUE(x.ok()) << "Xvfb did not start";
+  const std::string dir = TempDir("observe");
+  AllTopics all(194, "obs");
+  auto server = StartProgram("somasim-server", ServerArgs("obs", 194, {"--duration", "60"}),
+                             dir + "/server.log");
+  // The server's writers: everything but the tool and instructor commands.
+  const std::vector<int32_t> server_only = {1, 1, 1, 0, 1, 1, 0, 1, 1};
+  for (int i = 0; i < 1000 && all.Writers() != server_only; ++i) {
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  ASSERT_EQ(all.Writers(), server_only);
+  auto viewer = StartViewer(ViewerArgs("obs", 194, {"--observe", "--station", "instructor-1"}),
+                            dir + "/viewer.log");
+  ASSERT_TRUE(WaitForLog(dir + "/viewer.log", "scene_complete")) << ReadText(dir + "/viewer.log");
+  int samples = 0;
+  for (int i = 0; i < 150; ++i) {  // 1.5 s of an instructor watching
+    EXPECT_EQ(all.Writers(), server_only);
+    samples += all.tool_command.Take([](const auto&, const auto&) {});
+    samples += all.instructor.Take([](const auto&, const auto&) {});
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  EXPECT_EQ(samples, 0);
+  viewer->Signal(SIGTERM);
+  EXPECT_EQ(viewer->Wait(seconds(20)), 0) << ReadText(dir + "/viewer.log");
+  server->Signal(SIGTERM);
+  EXPECT_EQ(server->Wait(seconds(20)), 0) << ReadText(dir + "/server.log");
+}
+
+// A station without an arm drives a tool from the viewer: its tool commands reach the wire
+// (named by tool and station, finite, the tip above the organ) and the server takes them.
+TEST(ViewerProgram, StationDrivesAToolWithoutAnArm) {
+  Xvfb x;
+  ASSERT_TRUE(x.ok()) << "Xvfb did not start";
+  const std::string dir = TempDir("station");
+  AllTopics all(195, "station");
+  auto server = StartProgram("somasim-server", ServerArgs("station", 195, {"--duration", "60"}),
+                             dir + "/server.log");
+  auto viewer =
+      StartViewer(ViewerArgs("station", 195, {"--drive", "probe", "--station", "station-3"}),
+                  dir + "/viewer.log");
+  int commands = 0;
+  bool well_formed = true;
+  uint64_t received_by_server = 0;
+  for (int i = 0; i < 1000 && (commands < 20 || received_by_server == 0); ++i) {
+    all.tool_command.Take([&](const somasim_wire_ToolCommand& c, const dds_sample_info_t&) {
+      ++commands;
+      well_formed = well_formed && std::string(c.tool) == "probe" &&
+                    std::string(c.station) == "station-3" && std::isfinite(c.position[2]) &&
+                    c.orientation[0] == 1.0;
+    });
+    all.metrics.Take([&](const somasim_wire_ServerMetrics& m, const dds_sample_info_t&) {
+      received_by_server = m.tool_commands_received;
+    });
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  EXPECT_GE(commands, 20);
+  EXPECT_TRUE(well_formed);
+  EXPECT_GT(received_by_server, 0u) << ReadText(dir + "/server.log");
+  EXPECT_NE(ReadText(dir + "/viewer.log").find("\"driving\""), std::string::npos);
+  viewer->Signal(SIGTERM);
+  EXPECT_EQ(viewer->Wait(seconds(20)), 0) << ReadText(dir + "/viewer.log");
+  server->Signal(SIGTERM);
+  EXPECT_EQ(server->Wait(seconds(20)), 0) << ReadText(dir + "/server.log");
+}
+
 TEST(ViewerProgram, RefusesBadCommandLinesByName) {
   const std::string dir = TempDir("cli");
   const auto run = [&](const std::vector<std::string>& args, const std::string& log) {
@@ -396,6 +512,8 @@ TEST(ViewerProgram, RefusesBadCommandLinesByName) {
   EXPECT_EQ(run({"--session", "two words"}, "session.log"), 2);
   EXPECT_NE(ReadText(dir + "/session.log").find("--session"), std::string::npos);
   EXPECT_EQ(run({"--domain", "999"}, "domain.log"), 2);
+  EXPECT_EQ(run({"--observe", "--drive", "probe"}, "modes.log"), 2);
+  EXPECT_NE(ReadText(dir + "/modes.log").find("--observe"), std::string::npos);
   EXPECT_EQ(run({"--dds-config", dir + "/missing.xml", "--domain", "199"}, "config.log"), 5)
       << ReadText(dir + "/config.log");
   // No display: a clear message, not a crash inside GLUT.
