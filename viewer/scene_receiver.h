@@ -41,19 +41,19 @@ struct OrganScene {
 // A tool of the session: its shape (session description), its last commanded pose (from
 // whichever station drives it) and the server's last local force model for it.
 struct ToolScene {
-  std::string kind;            // "probe", "grasper", "scalpel", "camera"
-  double shaft_length = 0.0;   // [m]
-  double shaft_radius = 0.0;   // [m]
+  std::string kind;           // "probe", "grasper", "scalpel", "camera"
+  double shaft_length = 0.0;  // [m]
+  double shaft_radius = 0.0;  // [m]
   bool has_pose = false;
-  double position[3] = {};     // [m] the tip
+  double position[3] = {};                       // [m] the tip
   double orientation[4] = {1.0, 0.0, 0.0, 0.0};  // w x y z, shaft along the tool's +z
-  double jaw_closure = 0.0;    // 0 open .. 1 closed
+  double jaw_closure = 0.0;                      // 0 open .. 1 closed
   std::chrono::steady_clock::time_point last_command{};
   bool in_contact = false;
   double contact_point[3] = {};  // [m]
   double normal[3] = {};         // outward, unit
   bool grasping = false;
-  double grasp_anchor[3] = {};   // [m]
+  double grasp_anchor[3] = {};  // [m]
 };
 
 struct ReceiverCounters {

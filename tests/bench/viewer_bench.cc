@@ -25,27 +25,14 @@
 
 #include "common/app/child_process.h"
 #include "common/dds/dds.h"
+#include "tests/bench/bench_programs.h"
 
 namespace somasim::viewer {
 namespace {
 
-std::string BinPath(const std::string& program) {
-  return (std::filesystem::read_symlink("/proc/self/exe").parent_path() / program).string();
-}
-
-std::string TempDir(const std::string& name) {
-  const std::filesystem::path dir =
-      std::filesystem::temp_directory_path() / ("somasim-bench-" + std::to_string(getpid())) / name;
-  std::filesystem::create_directories(dir);
-  return dir.string();
-}
-
-std::string ReadText(const std::string& path) {
-  std::ifstream in(path);
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
+using bench::BinPath;
+using bench::ReadText;
+using bench::TempDir;
 
 void ViewerFrame(benchmark::State& bench, const std::string& organ, uint32_t domain) {
   const std::string dir = TempDir("viewer-" + organ);

@@ -48,6 +48,7 @@
 
 #include "common/app/child_process.h"
 #include "common/dds/dds.h"
+#include "tests/bench/bench_programs.h"
 
 namespace somasim::wire {
 namespace {
@@ -59,25 +60,9 @@ constexpr double kLatencySeconds = 6.0;  // [s] of frames the latency subscriber
 constexpr double kOverheadSeconds = 2.0;
 constexpr int kOverheadRounds = 5;  // of 0, N, N, 0 runs per /N (odd: a median)
 
-// The programs live beside this benchmark (build/bin).
-std::string BinPath(const std::string& program) {
-  return (std::filesystem::read_symlink("/proc/self/exe").parent_path() / program).string();
-}
-
-// A fresh folder for this process's files.
-std::string TempDir(const std::string& name) {
-  const std::filesystem::path dir =
-      std::filesystem::temp_directory_path() / ("somasim-bench-" + std::to_string(getpid())) / name;
-  std::filesystem::create_directories(dir);
-  return dir.string();
-}
-
-std::string ReadText(const std::string& path) {
-  std::ifstream in(path);
-  std::ostringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
+using bench::BinPath;
+using bench::ReadText;
+using bench::TempDir;
 
 // The loopback Cyclone configuration, as a file every child gets with --dds-config.
 std::string LoopbackConfigFile() {
