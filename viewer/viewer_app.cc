@@ -45,6 +45,7 @@ struct ViewerOptions {
   bool observe = false;            // observe-only: never publishes tool commands
   std::string drive;               // station: drive this tool from the start ("" = on 't')
   std::string station = "viewer";  // the station name in tool commands and logs
+  bool list_sessions = false;      // print the running sessions and exit
   int frames = 0;                  // stop after this many frames of the complete scene; 0 = never
   std::string report;              // JSON written when stopping ("" = none)
 };
@@ -99,6 +100,9 @@ struct Viewer {
   double jaw_closure = 0.0;
   uint64_t tool_seq = 0, instructor_seq = 0;
   Clock::time_point last_command{};
+  // Observe-only: the sessions running on the domain, refreshed every 2 s (n switches).
+  std::vector<std::string> sessions;
+  Clock::time_point last_listing{};
   GlView view;
   OrbitCamera camera;
   int width = 0, height = 0;
@@ -233,6 +237,25 @@ void Instruct(Viewer& v, uint32_t kind) {
   Log(LogLevel::kInfo, "instructor_command", {{"kind", kind}});
 }
 
+// Observe-only: joins the next running session (in name order) instead of this one.
+void NextSession(Viewer& v) {
+  if (!v.options.observe) return;
+  v.sessions = dds::RunningSessions(*v.participant, std::chrono::milliseconds(0));
+  if (v.sessions.empty()) return;
+  const auto after = std::upper_bound(v.sessions.begin(), v.sessions.end(), v.options.session);
+  const std::string next = after != v.sessions.end() ? *after : v.sessions.front();
+  if (next == v.options.session) return;
+  v.options.session = next;
+  v.receiver = std::make_unique<SceneReceiver>(*v.participant, *v.topics, next);
+  v.instructor_writer.reset();  // bound to the old session's partition
+  v.camera.fitted = false;
+  v.logged_complete = false;
+  v.drawn_frame.clear();
+  v.last_draw = Clock::time_point{};
+  glutSetWindowTitle(("somasim-viewer: " + next).c_str());
+  Log(LogLevel::kInfo, "switched_session", {{"session", next}});
+}
+
 Hud MakeHud(const Viewer& v) {
   Hud hud;
   const SceneReceiver& r = *v.receiver;
@@ -261,7 +284,10 @@ Hud MakeHud(const Viewer& v) {
     hud.lines.emplace_back(line);
   }
   if (v.options.observe) {
-    hud.lines.emplace_back("observe-only: p pause, r resume");
+    std::snprintf(line, sizeof line,
+                  "observe-only: p pause, r resume, n next session (%zu running)",
+                  v.sessions.size());
+    hud.lines.emplace_back(line);
   } else if (v.driving.empty()) {
     hud.lines.emplace_back("station: t drives a tool with the keys");
   } else {
@@ -347,6 +373,10 @@ void Idle() {
     StartDriving(v, v.options.drive);
   }
   PublishTool(v);
+  if (v.options.observe && Clock::now() - v.last_listing > std::chrono::seconds(2)) {
+    v.last_listing = Clock::now();
+    v.sessions = dds::RunningSessions(*v.participant, std::chrono::milliseconds(0));
+  }
   glutPostRedisplay();
   // The display rate is the frames' rate at most (60 Hz from the server); a short sleep keeps the
   // loop from spinning on a core the station's haptic node may need.
@@ -386,6 +416,7 @@ void Keyboard(unsigned char key, int, int) {
   if (key == 'f') v.camera.fitted = false;
   if (key == 'p') Instruct(v, 1);
   if (key == 'r') Instruct(v, 2);
+  if (key == 'n') NextSession(v);
   if (key == 'c' && !v.driving.empty()) v.jaw_closure = v.jaw_closure > 0.5 ? 0.0 : 1.0;
   if (key == 't' && v.driving.empty()) {
     for (const auto& [id, tool] : v.receiver->tools()) {
@@ -462,6 +493,9 @@ int ViewerMain(int argc, char** argv) {
   cli.add_flag("--observe", options.observe,
                "observe-only (instructors): never publishes tool commands; p pauses and r "
                "resumes the session");
+  cli.add_flag("--list-sessions", options.list_sessions,
+               "print the sessions running on the domain (one per line, after 2 s of "
+               "discovery) and exit; needs no display");
   cli.add_option("--drive", options.drive,
                  "station: drive this tool with the keyboard from the start (else t starts "
                  "driving the first tool)");
@@ -502,6 +536,18 @@ int ViewerMain(int argc, char** argv) {
   } catch (const std::runtime_error& e) {
     std::fprintf(stderr, "somasim-viewer: DDS: %s\n", e.what());
     return kExitDds;
+  }
+  if (options.list_sessions) {
+    try {
+      for (const std::string& name :
+           dds::RunningSessions(*viewer.participant, std::chrono::milliseconds(2000))) {
+        std::printf("%s\n", name.c_str());
+      }
+    } catch (const std::runtime_error& e) {
+      std::fprintf(stderr, "somasim-viewer: DDS: %s\n", e.what());
+      return kExitDds;
+    }
+    return kExitOk;
   }
   const char* display = std::getenv("DISPLAY");
   if (display == nullptr || *display == '\0') {

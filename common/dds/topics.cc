@@ -1,8 +1,13 @@
 #include "common/dds/topics.h"
 
+#include <chrono>
 #include <fstream>
+#include <map>
+#include <set>
 #include <sstream>
 #include <stdexcept>
+#include <string_view>
+#include <thread>
 
 namespace somasim::dds {
 namespace {
@@ -88,6 +93,54 @@ Topics::Topics(const Participant& participant)
       instructor(participant, somasim_wire_InstructorCommand_desc, kInstructorTopic),
       heartbeat(participant, somasim_wire_Heartbeat_desc, kHeartbeatTopic),
       metrics(participant, somasim_wire_ServerMetrics_desc, kMetricsTopic) {}
+
+std::vector<std::string> RunningSessions(const Participant& participant,
+                                         std::chrono::milliseconds wait) {
+  const dds_entity_t reader =
+      dds_create_reader(participant.handle(), DDS_BUILTIN_TOPIC_DCPSPUBLICATION, nullptr, nullptr);
+  if (reader < 0) throw DdsError("dds_create_reader(DCPSPublication)", reader);
+  // Writer instance → its partitions, for the heartbeat writers alive now.
+  std::map<dds_instance_handle_t, std::vector<std::string>> alive;
+  const auto end = std::chrono::steady_clock::now() + wait;
+  do {
+    constexpr size_t kMax = 64;
+    void* samples[kMax] = {};
+    dds_sample_info_t infos[kMax];
+    const dds_return_t n = dds_take(reader, samples, infos, kMax, kMax);
+    for (dds_return_t k = 0; k < n; ++k) {
+      const dds_sample_info_t& info = infos[k];
+      if (info.instance_state != DDS_IST_ALIVE) {
+        alive.erase(info.instance_handle);
+        continue;
+      }
+      if (!info.valid_data) continue;
+      const auto* endpoint = static_cast<const dds_builtintopic_endpoint_t*>(samples[k]);
+      if (endpoint->topic_name == nullptr ||
+          std::string_view(endpoint->topic_name) != kHeartbeatTopic) {
+        continue;
+      }
+      uint32_t count = 0;
+      char** names = nullptr;
+      std::vector<std::string> partitions;
+      if (endpoint->qos != nullptr && dds_qget_partition(endpoint->qos, &count, &names)) {
+        for (uint32_t p = 0; p < count; ++p) {
+          partitions.emplace_back(names[p]);
+          dds_free(names[p]);
+        }
+        dds_free(names);
+      }
+      alive[info.instance_handle] = std::move(partitions);
+    }
+    if (n > 0) dds_return_loan(reader, samples, n);
+    if (std::chrono::steady_clock::now() >= end) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  } while (true);
+  dds_delete(reader);
+  std::set<std::string> sessions;
+  for (const auto& [handle, partitions] : alive)
+    sessions.insert(partitions.begin(), partitions.end());
+  return {sessions.begin(), sessions.end()};
+}
 
 std::string ReadDdsConfig(const std::string& path) {
   if (path.empty()) return "";

@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "common/dds/dds.h"
 #include "idl/mesh.h"
@@ -73,6 +74,13 @@ struct Topics {
   Topic<somasim_wire_Heartbeat> heartbeat;
   Topic<somasim_wire_ServerMetrics> metrics;
 };
+
+// The sessions running on the participant's domain: the partitions of the servers' heartbeat
+// writers that discovery has seen alive, sorted, each once. Discovery takes a moment after a
+// participant is made: this polls Cyclone's built-in publication topic for `wait` and answers
+// with what it found. Throws DdsError when the built-in reader cannot be made.
+std::vector<std::string> RunningSessions(const Participant& participant,
+                                         std::chrono::milliseconds wait);
 
 // The Cyclone configuration a process uses: the file named by --dds-config (read whole), else
 // "" (Cyclone's defaults, or the CYCLONEDDS_URI environment variable). Throws

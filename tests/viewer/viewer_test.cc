@@ -5,7 +5,8 @@
 // where the organ is; a viewer that joins late shows exactly the server's last frame (its
 // --dump-positions equals the server's --dump-final byte for byte); bad command lines are
 // refused by name; an observe-only viewer has no writer on any topic; a station drives a tool
-// without an arm. Domains 194..199.
+// without an arm; it lists the running sessions. Domains 193..199 (193 is also the
+// viewer benchmark's: the two never run together).
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/stat.h>
@@ -499,6 +500,35 @@ TEST(ViewerProgram, StationDrivesAToolWithoutAnArm) {
   EXPECT_EQ(viewer->Wait(seconds(20)), 0) << ReadText(dir + "/viewer.log");
   server->Signal(SIGTERM);
   EXPECT_EQ(server->Wait(seconds(20)), 0) << ReadText(dir + "/server.log");
+}
+
+// An instructor asks which sessions are running: two servers on the domain, two names; none
+// once they have stopped. No display needed.
+TEST(ViewerProgram, ListsTheRunningSessions) {
+  const std::string dir = TempDir("list");
+  auto ward1 = StartProgram("somasim-server", ServerArgs("ward-1", 193, {"--duration", "60"}),
+                            dir + "/ward1.log");
+  auto ward2 = StartProgram("somasim-server", ServerArgs("ward-2", 193, {"--duration", "60"}),
+                            dir + "/ward2.log");
+  const auto list = [&](const std::string& log) {
+    auto p =
+        StartViewer({"--list-sessions", "--domain", "193", "--dds-config", LoopbackConfigFile()},
+                    dir + "/" + log);
+    EXPECT_EQ(p->Wait(seconds(30)), 0) << ReadText(dir + "/" + log);
+    return ReadText(dir + "/" + log);
+  };
+  for (int i = 0;
+       i < 200 && (ReadText(dir + "/ward1.log").find("\"running\"") == std::string::npos ||
+                   ReadText(dir + "/ward2.log").find("\"running\"") == std::string::npos);
+       ++i) {
+    std::this_thread::sleep_for(milliseconds(50));
+  }
+  EXPECT_EQ(list("both.log"), "ward-1\nward-2\n");
+  ward1->Signal(SIGTERM);
+  ward2->Signal(SIGTERM);
+  EXPECT_EQ(ward1->Wait(seconds(20)), 0) << ReadText(dir + "/ward1.log");
+  EXPECT_EQ(ward2->Wait(seconds(20)), 0) << ReadText(dir + "/ward2.log");
+  EXPECT_EQ(list("none.log"), "");
 }
 
 TEST(ViewerProgram, RefusesBadCommandLinesByName) {
