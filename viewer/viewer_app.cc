@@ -21,6 +21,7 @@
 #include "common/app/signals.h"
 #include "common/dds/topics.h"
 #include "common/render/png_encoder.h"
+#include "common/wire/frame_dump.h"
 #include "viewer/gl_view.h"
 #include "viewer/scene_receiver.h"
 
@@ -123,19 +124,13 @@ struct Viewer {
 
 Viewer* g_viewer = nullptr;
 
-// DIR/<organ>.f32 and DIR/<organ>.frame for every organ with a shape; false on an I/O error.
+// wire::WriteFrameDump of every organ with a shape; false on an I/O error.
 bool DumpPositions(const SceneReceiver& r, const std::string& dir) {
-  std::error_code error;
-  std::filesystem::create_directories(dir, error);
   for (const auto& [id, organ] : r.organs()) {
-    if (!organ.has_shape()) continue;
-    std::ofstream data(dir + "/" + id + ".f32", std::ios::binary);
-    const auto p = organ.decoder->positions();
-    data.write(reinterpret_cast<const char*>(p.data()),
-               static_cast<std::streamsize>(p.size() * sizeof(float)));
-    std::ofstream frame(dir + "/" + id + ".frame");
-    frame << organ.decoder->frame() << "\n";
-    if (!data || !frame) return false;
+    if (organ.has_shape() &&
+        !wire::WriteFrameDump(dir, id, organ.decoder->positions(), organ.decoder->frame())) {
+      return false;
+    }
   }
   return true;
 }

@@ -25,6 +25,7 @@
 #include "common/dds/topics.h"
 #include "common/mesh_io/mesh_error.h"
 #include "common/wire/frame_codec.h"
+#include "common/wire/frame_dump.h"
 #include "server/app/snapshot_buffer.h"
 #include "server/contact/force_model_wire.h"
 #include "server/session/session.h"
@@ -546,16 +547,11 @@ class Server {
  public:
   // Writes each organ's last published frame (ServerOptions::dump_final). False on an I/O error.
   bool DumpFinal(const std::string& dir) const {
-    std::error_code ec;
-    std::filesystem::create_directories(dir, ec);
     for (size_t k = 0; k < encoders_.size(); ++k) {
-      const std::span<const float> p = encoders_[k]->published();
-      std::ofstream data(dir + "/" + organ_ids_[k] + ".f32", std::ios::binary);
-      data.write(reinterpret_cast<const char*>(p.data()),
-                 static_cast<std::streamsize>(p.size() * sizeof(float)));
-      std::ofstream frame(dir + "/" + organ_ids_[k] + ".frame");
-      frame << encoders_[k]->last_frame() << "\n";
-      if (!data || !frame) return false;
+      if (!wire::WriteFrameDump(dir, organ_ids_[k], encoders_[k]->published(),
+                                encoders_[k]->last_frame())) {
+        return false;
+      }
     }
     return true;
   }
