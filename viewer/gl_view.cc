@@ -22,7 +22,9 @@ constexpr float kInnerFace[3] = {0.95F, 0.85F, 0.55F};
 constexpr float kBackground[3] = {0.10F, 0.11F, 0.13F};
 constexpr float kMetal[3] = {0.70F, 0.72F, 0.78F};    // tools
 constexpr float kContact[3] = {1.00F, 0.85F, 0.10F};  // contact point and normal
-constexpr float kGrasp[3] = {0.20F, 0.85F, 0.30F};    // grasp anchor
+constexpr float kGrasp[3] = {0.20F, 0.85F, 0.30F};    // grasp anchor and grasped points
+constexpr float kForce[3] = {1.00F, 0.50F, 0.10F};    // the rendered force
+constexpr double kForceScale = 0.01;                  // [m/N] the arrow's length per newton
 
 void Colour(const float* c) {
   const GLfloat diffuse[4] = {c[0], c[1], c[2], 1.0F};
@@ -64,12 +66,41 @@ void OrbitCamera::Pan(double dx, double dy) {
   target += distance * (dx * right + dy * up);
 }
 
-bool GlView::Bounds(const SceneReceiver& scene, Eigen::Vector3d* lo, Eigen::Vector3d* hi) {
+ViewPose ViewPose::Of(const OrbitCamera& camera) {
+  ViewPose pose;
+  pose.eye = camera.Eye();
+  pose.center = camera.target;
+  pose.up = Eigen::Vector3d::UnitZ();
+  pose.fov_deg = camera.fov_deg;
+  pose.near = std::max(camera.distance * 0.01, 1e-4);
+  pose.far = camera.distance * 20.0;
+  return pose;
+}
+
+ViewPose ViewPose::Laparoscope(const ToolScene& camera_tool) {
+  const Eigen::Quaterniond q(camera_tool.orientation[0], camera_tool.orientation[1],
+                             camera_tool.orientation[2], camera_tool.orientation[3]);
+  const Eigen::Matrix3d r =
+      q.norm() > 1e-9 ? q.normalized().toRotationMatrix() : Eigen::Matrix3d::Identity();
+  ViewPose pose;
+  pose.eye =
+      Eigen::Vector3d(camera_tool.position[0], camera_tool.position[1], camera_tool.position[2]);
+  pose.center = pose.eye - 0.1 * r.col(2);  // looking out of the tip, away from the handle
+  pose.up = r.col(1);
+  pose.fov_deg = 70.0;
+  pose.near = 1e-3;
+  pose.far = 2.0;
+  return pose;
+}
+
+bool GlView::Bounds(const SceneReceiver& scene, Eigen::Vector3d* lo, Eigen::Vector3d* hi,
+                    bool rest) {
   *lo = Eigen::Vector3d::Constant(std::numeric_limits<double>::infinity());
   *hi = -*lo;
   bool any = false;
   for (const auto& [id, organ] : scene.organs()) {
-    const float* x = organ.positions();
+    if (rest && organ.rest.size() != 3 * static_cast<size_t>(organ.num_nodes)) continue;
+    const float* x = rest ? organ.rest.data() : organ.positions();
     for (uint32_t i = 0; i < organ.num_nodes; ++i) {
       const Eigen::Vector3d p =
           Eigen::Vector3f(x[3 * i], x[3 * i + 1], x[3 * i + 2]).cast<double>();
@@ -81,7 +112,7 @@ bool GlView::Bounds(const SceneReceiver& scene, Eigen::Vector3d* lo, Eigen::Vect
   return any;
 }
 
-void GlView::Draw(const SceneReceiver& scene, const OrbitCamera& camera, const Hud& hud, int width,
+void GlView::Draw(const SceneReceiver& scene, const ViewPose& pose, const Hud& hud, int width,
                   int height) {
   width = std::max(width, 1);
   height = std::max(height, 1);
@@ -90,8 +121,7 @@ void GlView::Draw(const SceneReceiver& scene, const OrbitCamera& camera, const H
   glClear(GL_COLOR_BUFFER_BIT | GL_DEPTH_BUFFER_BIT);
   glMatrixMode(GL_PROJECTION);
   glLoadIdentity();
-  const double near = std::max(camera.distance * 0.01, 1e-4);
-  gluPerspective(camera.fov_deg, static_cast<double>(width) / height, near, camera.distance * 20.0);
+  gluPerspective(pose.fov_deg, static_cast<double>(width) / height, pose.near, pose.far);
   glMatrixMode(GL_MODELVIEW);
   glLoadIdentity();
   // A headlight: the light sits at the eye (set before the view transform).
@@ -101,9 +131,8 @@ void GlView::Draw(const SceneReceiver& scene, const OrbitCamera& camera, const H
   glLightfv(GL_LIGHT0, GL_POSITION, light_position);
   glLightfv(GL_LIGHT0, GL_DIFFUSE, white);
   glLightfv(GL_LIGHT0, GL_SPECULAR, specular);
-  const Eigen::Vector3d eye = camera.Eye();
-  gluLookAt(eye.x(), eye.y(), eye.z(), camera.target.x(), camera.target.y(), camera.target.z(), 0.0,
-            0.0, 1.0);
+  gluLookAt(pose.eye.x(), pose.eye.y(), pose.eye.z(), pose.center.x(), pose.center.y(),
+            pose.center.z(), pose.up.x(), pose.up.y(), pose.up.z());
   glEnable(GL_DEPTH_TEST);
   glEnable(GL_LIGHTING);
   glEnable(GL_LIGHT0);
@@ -236,6 +265,43 @@ void GlView::DrawTools(const SceneReceiver& scene) {
       glEnable(GL_LIGHTING);
     }
     if (tool.grasping) sphere(tool.grasp_anchor, radius * 1.1, kGrasp);
+    glDisable(GL_LIGHTING);
+    const auto held = scene.organs().find(tool.held_organ);
+    if (!tool.held_nodes.empty() && held != scene.organs().end()) {
+      const float* x = held->second.positions();
+      glPointSize(5.0F);
+      glColor3fv(kGrasp);
+      glBegin(GL_POINTS);
+      for (const uint32_t node : tool.held_nodes) {
+        if (node < held->second.num_nodes) glVertex3fv(x + 3 * static_cast<size_t>(node));
+      }
+      glEnd();
+    }
+    // The force at the tip: a line and an arrowhead (two strokes in the plane of the view's
+    // up direction, which is enough to tell its sense).
+    const Eigen::Vector3d f = tool.Force();
+    if (f.norm() > 1e-3) {
+      const Eigen::Vector3d a(tool.position[0], tool.position[1], tool.position[2]);
+      const Eigen::Vector3d b = a + kForceScale * f;
+      const Eigen::Vector3d dir = f.normalized();
+      Eigen::Vector3d side = dir.cross(Eigen::Vector3d::UnitZ());
+      if (side.norm() < 1e-6) side = dir.cross(Eigen::Vector3d::UnitX());
+      side = 0.25 * (b - a).norm() * side.normalized();
+      const Eigen::Vector3d back = b - 0.3 * (b - a);
+      glLineWidth(3.0F);
+      glColor3fv(kForce);
+      glBegin(GL_LINES);
+      glVertex3dv(a.data());
+      glVertex3dv(b.data());
+      const Eigen::Vector3d h1 = back + side, h2 = back - side;
+      glVertex3dv(b.data());
+      glVertex3dv(h1.data());
+      glVertex3dv(b.data());
+      glVertex3dv(h2.data());
+      glEnd();
+      glLineWidth(1.0F);
+    }
+    glEnable(GL_LIGHTING);
   }
 }
 

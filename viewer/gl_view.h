@@ -35,6 +35,21 @@ struct OrbitCamera {
   void Pan(double dx, double dy);  // in view-plane units of the distance
 };
 
+// Where a frame is drawn from: the orbit camera's view, or the laparoscope's (a camera tool's
+// pose: the eye at its tip looking down its shaft, -z of the tool frame, with the frame's +y
+// up, 70° wide).
+struct ViewPose {
+  Eigen::Vector3d eye = Eigen::Vector3d::UnitX();  // [m]
+  Eigen::Vector3d center = Eigen::Vector3d::Zero();
+  Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
+  double fov_deg = 40.0;  // vertical
+  double near = 1e-3;     // [m] clip planes
+  double far = 10.0;
+
+  static ViewPose Of(const OrbitCamera& camera);
+  static ViewPose Laparoscope(const ToolScene& camera_tool);
+};
+
 // The heads-up display's lines, drawn top left.
 struct Hud {
   std::vector<std::string> lines;
@@ -47,10 +62,12 @@ class GlView {
   ~GlView();
   GlView(const GlView&) = delete;
   GlView& operator=(const GlView&) = delete;
-  // The box of every organ's shown positions; false when there is none.
-  static bool Bounds(const SceneReceiver& scene, Eigen::Vector3d* lo, Eigen::Vector3d* hi);
+  // The box of every organ's shown positions (or, with `rest`, their rest positions, the same
+  // for every viewer whenever it joins); false when there is none.
+  static bool Bounds(const SceneReceiver& scene, Eigen::Vector3d* lo, Eigen::Vector3d* hi,
+                     bool rest = false);
   // Draws the scene into the current context's back buffer, width × height pixels.
-  void Draw(const SceneReceiver& scene, const OrbitCamera& camera, const Hud& hud, int width,
+  void Draw(const SceneReceiver& scene, const ViewPose& pose, const Hud& hud, int width,
             int height);
   // The back buffer's pixels (after Draw, before the swap), top row first.
   static render::Image ReadPixels(int width, int height);
@@ -62,7 +79,8 @@ class GlView {
     std::vector<float> normals;          // 3 × num_nodes
   };
   // Each tool with a pose: its shaft and tip (metal), its contact point and normal (yellow), its
-  // grasp anchor (green).
+  // grasp anchor (green sphere) and grasped points (green dots), and the force its local force
+  // model gives at the tip (an orange arrow from the tip, 1 cm per newton).
   void DrawTools(const SceneReceiver& scene);
 
   std::map<std::string, OrganBuffers> buffers_;

@@ -1,18 +1,39 @@
 #include "viewer/scene_receiver.h"
 
+#include <google/protobuf/io/tokenizer.h>
+#include <google/protobuf/text_format.h>
+
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <iterator>
 
 #include "common/wire/mesh_frame_view.h"
+#include "idl/scene.pb.h"
+#include "server/contact/force_model_wire.h"
 
 namespace somasim::viewer {
 
 namespace {
 
-constexpr size_t kMaxMessages = 8;  // scenario messages kept for the heads-up display
+constexpr size_t kMaxMessages = 8;    // scenario messages kept for the heads-up display
+constexpr size_t kMaxHeldNodes = 64;  // server/contact/grasp.h GraspSettings::max_nodes
+
+// Silences protobuf's parse errors: a scene text the viewer cannot read only costs it the
+// grasp radii (their defaults stay).
+class QuietErrors : public google::protobuf::io::ErrorCollector {
+ public:
+  void AddError(int, int, const std::string&) override {}
+};
 
 }  // namespace
+
+Eigen::Vector3d ToolScene::Force() const {
+  if (!has_model || !has_pose) return Eigen::Vector3d::Zero();
+  return contact::EvaluateLocalForceModel(
+             model, Eigen::Vector3d(position[0], position[1], position[2]), Eigen::Vector3d::Zero())
+      .force;
+}
 
 const float* OrganScene::positions() const {
   return has_shape() ? decoder->positions().data() : rest.data();
@@ -45,6 +66,9 @@ void SceneReceiver::SeeServer(uint64_t id) {
   if (server_id_ != 0) ++counters_.server_restarts;
   // A new server (a restart): what the old one published no longer holds.
   server_id_ = id;
+  // Heard from now (its session, topology or frame arrived): alive for a lease even before its
+  // first heartbeat, which may come after the transient-local samples.
+  last_heartbeat_ = std::chrono::steady_clock::now();
   organs_.clear();
   tools_.clear();
   has_session_ = false;
@@ -68,6 +92,26 @@ void SceneReceiver::OnSession(const somasim_wire_SessionInfo& s) {
                       info.shaft_radius >= 0.0 && info.shaft_radius < 1.0;
     tool.shaft_length = sane ? info.shaft_length : 0.0;
     tool.shaft_radius = sane ? info.shaft_radius : 0.0;
+    tool.jaw_length = std::isfinite(info.jaw_length) && info.jaw_length >= 0.0 &&
+                              info.jaw_length <= tool.shaft_length
+                          ? info.jaw_length
+                          : 0.0;
+  }
+  // The grasp radii are in the scene's text only (the session description has no field).
+  if (s.scene_text != nullptr) {
+    scene::Scene scene;
+    google::protobuf::TextFormat::Parser parser;
+    QuietErrors quiet;
+    parser.RecordErrorsTo(&quiet);
+    if (parser.ParseFromString(s.scene_text, &scene)) {
+      for (const scene::Tool& t : scene.tool()) {
+        const auto it = tools_.find(t.id());
+        const double r = t.grasper().grasp_radius();
+        if (it != tools_.end() && t.has_grasper() && std::isfinite(r) && r > 0.0 && r <= 0.05) {
+          it->second.grasp_radius = r;
+        }
+      }
+    }
   }
   organ_ids_.clear();
   for (uint32_t k = 0; k < s.organs._length; ++k) {
@@ -148,7 +192,6 @@ bool SceneReceiver::Poll() {
     server_state_ = h.state;
     sim_time_ = std::isfinite(h.sim_time) ? h.sim_time : sim_time_;
     last_heartbeat_ = std::chrono::steady_clock::now();
-    has_heartbeat_ = true;
   });
   metrics_reader_->Take([this](const somasim_wire_ServerMetrics& m, const dds_sample_info_t&) {
     if (m.format_version != dds::kWireFormatVersion) {
@@ -189,29 +232,75 @@ bool SceneReceiver::Poll() {
         t.last_command = std::chrono::steady_clock::now();
       },
       256);
-  force_models_->Take([this](const somasim_wire_ForceModel& m, const dds_sample_info_t&) {
-    if (m.format_version != dds::kWireFormatVersion || m.tool == nullptr) {
-      ++counters_.wrong_format_version;
-      return;
-    }
-    const auto it = tools_.find(m.tool);
-    if (it == tools_.end() || m.server_id != server_id_) return;
-    bool finite = true;
-    for (const double v : m.contact_point) finite = finite && std::isfinite(v);
-    for (const double v : m.normal) finite = finite && std::isfinite(v);
-    for (const double v : m.grasp_anchor) finite = finite && std::isfinite(v);
-    if (!finite) {
-      ++counters_.bad_tool_samples;
-      return;
-    }
-    ToolScene& t = it->second;
-    t.in_contact = m.in_contact;
-    std::copy(std::begin(m.contact_point), std::end(m.contact_point), t.contact_point);
-    std::copy(std::begin(m.normal), std::end(m.normal), t.normal);
-    t.grasping = m.grasping;
-    std::copy(std::begin(m.grasp_anchor), std::end(m.grasp_anchor), t.grasp_anchor);
-  });
+  force_models_->Take(
+      [this](const somasim_wire_ForceModel& m, const dds_sample_info_t&) { OnForceModel(m); });
   return changed;
+}
+
+void SceneReceiver::OnForceModel(const somasim_wire_ForceModel& m) {
+  if (m.format_version != dds::kWireFormatVersion || m.tool == nullptr) {
+    ++counters_.wrong_format_version;
+    return;
+  }
+  const auto it = tools_.find(m.tool);
+  if (it == tools_.end() || m.server_id != server_id_) return;
+  contact::LocalForceModel model;
+  if (!contact::FromWire(m, dds::kWireFormatVersion, &model).empty()) {
+    ++counters_.bad_tool_samples;  // non-finite, asymmetric, negative stiffness, ...
+    return;
+  }
+  ToolScene& t = it->second;
+  const bool grasp_begins = model.grasping && !t.grasping;
+  t.has_model = true;
+  t.model = model;
+  t.organ = m.organ != nullptr ? m.organ : "";
+  t.in_contact = model.in_contact;
+  t.grasping = model.grasping;
+  for (int k = 0; k < 3; ++k) {
+    t.contact_point[k] = model.contact_point[k];
+    t.normal[k] = model.normal[k];
+    t.grasp_anchor[k] = model.grasp_anchor[k];
+  }
+  if (grasp_begins) {
+    FindHeldNodes(&t);
+  } else if (!model.grasping) {
+    t.held_nodes.clear();
+    t.held_organ.clear();
+  }
+}
+
+void SceneReceiver::FindHeldNodes(ToolScene* tool) const {
+  tool->held_nodes.clear();
+  tool->held_organ.clear();
+  const auto organ = organs_.find(tool->organ);
+  if (organ == organs_.end() || !tool->has_pose) return;
+  const OrganScene& o = organ->second;
+  // The jaw segment p..q: from the tip up the shaft (the tool frame's +z).
+  const Eigen::Quaterniond rotation(tool->orientation[0], tool->orientation[1],
+                                    tool->orientation[2], tool->orientation[3]);
+  const Eigen::Vector3d p(tool->position[0], tool->position[1], tool->position[2]);
+  const Eigen::Vector3d axis = rotation.norm() > 1e-9
+                                   ? (rotation.normalized() * Eigen::Vector3d::UnitZ()).eval()
+                                   : Eigen::Vector3d::UnitZ().eval();
+  const Eigen::Vector3d q = p + tool->jaw_length * axis;
+  const float* x = o.positions();
+  std::vector<std::pair<double, uint32_t>> near;
+  std::vector<uint8_t> seen(o.num_nodes, 0);
+  for (const uint32_t node : o.triangles) {
+    if (seen[node] != 0) continue;
+    seen[node] = 1;
+    const Eigen::Vector3d v =
+        Eigen::Vector3f(x[3 * node], x[3 * node + 1], x[3 * node + 2]).cast<double>();
+    const Eigen::Vector3d d = q - p;
+    const double s =
+        d.squaredNorm() > 0.0 ? std::clamp((v - p).dot(d) / d.squaredNorm(), 0.0, 1.0) : 0.0;
+    const double distance = (v - (p + s * d)).norm();
+    if (distance <= tool->grasp_radius) near.emplace_back(distance, node);
+  }
+  std::sort(near.begin(), near.end());
+  if (near.size() > kMaxHeldNodes) near.resize(kMaxHeldNodes);
+  for (const auto& [distance, node] : near) tool->held_nodes.push_back(node);
+  tool->held_organ = tool->organ;
 }
 
 bool SceneReceiver::complete() const {
@@ -223,7 +312,7 @@ bool SceneReceiver::complete() const {
 }
 
 bool SceneReceiver::server_gone(std::chrono::steady_clock::time_point now) const {
-  return !has_heartbeat_ || now - last_heartbeat_ > dds::kLease;
+  return server_id_ == 0 || now - last_heartbeat_ > dds::kLease;
 }
 
 }  // namespace somasim::viewer

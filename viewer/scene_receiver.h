@@ -10,6 +10,7 @@
 // silent for the lease means the server is gone.
 #pragma once
 
+#include <Eigen/Core>
 #include <chrono>
 #include <cstdint>
 #include <map>
@@ -19,6 +20,7 @@
 
 #include "common/dds/topics.h"
 #include "common/wire/frame_codec.h"
+#include "server/contact/local_force_model.h"
 
 namespace somasim::viewer {
 
@@ -38,12 +40,15 @@ struct OrganScene {
   const float* positions() const;
 };
 
-// A tool of the session: its shape (session description), its last commanded pose (from
-// whichever station drives it) and the server's last local force model for it.
+// A tool of the session: its shape (session description, and the grasp radius from the scene's
+// text), its last commanded pose (from whichever station drives it) and the server's last local
+// force model for it.
 struct ToolScene {
-  std::string kind;           // "probe", "grasper", "scalpel", "camera"
-  double shaft_length = 0.0;  // [m]
-  double shaft_radius = 0.0;  // [m]
+  std::string kind;             // "probe", "grasper", "scalpel", "camera"
+  double shaft_length = 0.0;    // [m]
+  double shaft_radius = 0.0;    // [m]
+  double jaw_length = 0.0;      // [m] grasper
+  double grasp_radius = 0.003;  // [m] grasper: the scene's, or idl/scene.proto's default
   bool has_pose = false;
   double position[3] = {};                       // [m] the tip
   double orientation[4] = {1.0, 0.0, 0.0, 0.0};  // w x y z, shaft along the tool's +z
@@ -54,6 +59,21 @@ struct ToolScene {
   double normal[3] = {};         // outward, unit
   bool grasping = false;
   double grasp_anchor[3] = {};  // [m]
+  // The server's last local force model (validated: contact::FromWire) and the organ it
+  // touches or holds ("" for none).
+  bool has_model = false;
+  contact::LocalForceModel model;
+  std::string organ;
+  // The grasped points: when a grasp begins, the surface nodes of the held organ within
+  // grasp_radius of the jaw segment (tip to jaw_length up the shaft) as shown then, the 64
+  // nearest at most: the server's rule (server/contact/grasp.cc), which does not publish them.
+  std::string held_organ;
+  std::vector<uint32_t> held_nodes;
+
+  // The force the local force model gives at the tool's commanded tip, at rest [N] (zero
+  // without a model or a pose): what the station's hand feels, up to the haptic node's rate
+  // limit.
+  Eigen::Vector3d Force() const;
 };
 
 struct ReceiverCounters {
@@ -62,7 +82,7 @@ struct ReceiverCounters {
   uint64_t frames_waiting_for_topology = 0;
   uint64_t wrong_format_version = 0;
   uint64_t server_restarts = 0;
-  uint64_t bad_tool_samples = 0;  // tool commands or force models with non-finite values
+  uint64_t bad_tool_samples = 0;  // tool commands with non-finite values; unusable force models
 };
 
 class SceneReceiver {
@@ -84,7 +104,8 @@ class SceneReceiver {
   // Every organ of the session description has a shape.
   bool complete() const;
   // The server's last heartbeat: state (1 starting, 2 running, 3 paused, 4 stopping), session
-  // time, and whether it is older than the lease (the server is gone).
+  // time, and whether the server is gone: nothing heard of it (its first sample, then its
+  // heartbeats) for longer than the lease (500 ms); true before any server is seen.
   uint32_t server_state() const { return server_state_; }
   double sim_time() const { return sim_time_; }
   bool server_gone(std::chrono::steady_clock::time_point now) const;
@@ -98,6 +119,9 @@ class SceneReceiver {
   void OnTopology(const somasim_wire_OrganTopology& t);
   bool OnFrame(const somasim_wire_MeshFrame& f);
   void SeeServer(uint64_t id);
+  void OnForceModel(const somasim_wire_ForceModel& m);
+  // The grasped points of `tool` as a grasp begins (ToolScene::held_nodes).
+  void FindHeldNodes(ToolScene* tool) const;
 
   std::unique_ptr<dds::Reader<somasim_wire_SessionInfo>> session_;
   std::unique_ptr<dds::Reader<somasim_wire_OrganTopology>> topology_;
@@ -115,8 +139,8 @@ class SceneReceiver {
   std::map<std::string, ToolScene> tools_;
   uint32_t server_state_ = 0;
   double sim_time_ = 0.0;
+  // The last heartbeat of the current server, or when that server was first heard of.
   std::chrono::steady_clock::time_point last_heartbeat_{};
-  bool has_heartbeat_ = false;
   bool has_metrics_ = false;
   somasim_wire_ServerMetrics metrics_{};
   std::vector<std::string> messages_;

@@ -24,6 +24,7 @@
 #include "common/wire/frame_dump.h"
 #include "viewer/gl_view.h"
 #include "viewer/scene_receiver.h"
+#include "viewer/viewer_script.h"
 
 namespace somasim::viewer {
 
@@ -49,7 +50,12 @@ struct ViewerOptions {
   bool list_sessions = false;      // print the running sessions and exit
   int frames = 0;                  // stop after this many frames of the complete scene; 0 = never
   std::string report;              // JSON written when stopping ("" = none)
+  std::string script;              // a viewer script (viewer/viewer_script.h; "" = none)
 };
+
+// viewer_script.cc names GLUT's special keys by their codes.
+static_assert(GLUT_KEY_LEFT == 100 && GLUT_KEY_UP == 101 && GLUT_KEY_RIGHT == 102 &&
+              GLUT_KEY_DOWN == 103 && GLUT_KEY_PAGE_UP == 104 && GLUT_KEY_PAGE_DOWN == 105);
 
 // The last kCapacity samples of a quantity [ms], for the display and the report.
 class Recent {
@@ -104,8 +110,18 @@ struct Viewer {
   // Observe-only: the sessions running on the domain, refreshed every 2 s (n switches).
   std::vector<std::string> sessions;
   Clock::time_point last_listing{};
-  GlView view;
+  std::unique_ptr<GlView> view;  // remade with the window (a lost GL context)
+  int window = 0;                // GLUT's window id
   OrbitCamera camera;
+  bool laparoscope = false;  // drawing from the scene's camera tool (l toggles)
+  // Observe-only: an annotation being typed (a starts it, Enter sends, Esc drops it).
+  bool typing = false;
+  std::string note;
+  // The script's events, the next to run, and when the whole scene was first shown.
+  std::vector<ViewerEvent> script;
+  size_t next_event = 0;
+  Clock::time_point complete_at{};
+  std::string pending_screenshot;  // written after the next draw
   int width = 0, height = 0;
   int frames_with_scene = 0;  // frames drawn since every organ had a shape
   Clock::time_point started = Clock::now();
@@ -118,8 +134,10 @@ struct Viewer {
   Recent frame_ms, latency_ms;
   Clock::time_point last_draw{};
   std::map<std::string, uint64_t> drawn_frame;  // per organ, the frame last drawn
-  // Mouse state.
+  // Mouse state: the button held, where it was, and whether it drags the driven tool (Shift
+  // held when it was pressed).
   int button = -1, last_x = 0, last_y = 0;
+  bool drag_tool = false;
 };
 
 Viewer* g_viewer = nullptr;
@@ -215,8 +233,8 @@ void PublishTool(Viewer& v) {
   v.tool_writer->Write(c);
 }
 
-// Observe-only mode: an instructor command (1 pause, 2 resume).
-void Instruct(Viewer& v, uint32_t kind) {
+// Observe-only mode: an instructor command (1 pause, 2 resume, 4 annotate with `text`).
+void Instruct(Viewer& v, uint32_t kind, const std::string& text = std::string()) {
   if (!v.options.observe) return;
   if (!v.instructor_writer) {
     v.instructor_writer = std::make_unique<dds::Writer<somasim_wire_InstructorCommand>>(
@@ -227,9 +245,9 @@ void Instruct(Viewer& v, uint32_t kind) {
   c.seq = ++v.instructor_seq;
   c.instructor = dds::CString(v.options.station);
   c.kind = kind;
-  c.text = dds::CString(std::string());
+  c.text = dds::CString(text);
   v.instructor_writer->Write(c);
-  Log(LogLevel::kInfo, "instructor_command", {{"kind", kind}});
+  Log(LogLevel::kInfo, "instructor_command", {{"kind", kind}, {"text", text}});
 }
 
 // Observe-only: joins the next running session (in name order) instead of this one.
@@ -244,11 +262,20 @@ void NextSession(Viewer& v) {
   v.receiver = std::make_unique<SceneReceiver>(*v.participant, *v.topics, next);
   v.instructor_writer.reset();  // bound to the old session's partition
   v.camera.fitted = false;
+  v.laparoscope = false;
   v.logged_complete = false;
   v.drawn_frame.clear();
   v.last_draw = Clock::time_point{};
   glutSetWindowTitle(("somasim-viewer: " + next).c_str());
   Log(LogLevel::kInfo, "switched_session", {{"session", next}});
+}
+
+// The scene's laparoscope: its first camera tool with a pose (nullptr: none).
+const ToolScene* Laparoscope(const SceneReceiver& r) {
+  for (const auto& [id, tool] : r.tools()) {
+    if (tool.kind == "camera" && tool.has_pose) return &tool;
+  }
+  return nullptr;
 }
 
 Hud MakeHud(const Viewer& v) {
@@ -271,23 +298,41 @@ Hud MakeHud(const Viewer& v) {
     hud.lines.emplace_back(line);
   }
   const ReceiverCounters& c = r.counters();
-  if (c.bad_frames + c.bad_topologies + c.wrong_format_version > 0) {
-    std::snprintf(line, sizeof line, "dropped: %llu bad frames, %llu bad topologies, %llu versions",
+  if (c.bad_frames + c.bad_topologies + c.wrong_format_version + c.bad_tool_samples > 0) {
+    std::snprintf(line, sizeof line,
+                  "dropped: %llu bad frames, %llu bad topologies, %llu versions, %llu tool",
                   static_cast<unsigned long long>(c.bad_frames),
                   static_cast<unsigned long long>(c.bad_topologies),
-                  static_cast<unsigned long long>(c.wrong_format_version));
+                  static_cast<unsigned long long>(c.wrong_format_version),
+                  static_cast<unsigned long long>(c.bad_tool_samples));
     hud.lines.emplace_back(line);
   }
-  if (v.options.observe) {
-    std::snprintf(line, sizeof line,
-                  "observe-only: p pause, r resume, n next session (%zu running)",
-                  v.sessions.size());
+  for (const auto& [id, tool] : r.tools()) {
+    const Eigen::Vector3d f = tool.Force();
+    if (!tool.in_contact && !tool.grasping && f.norm() < 0.01) continue;
+    std::snprintf(line, sizeof line, "%s: %s %s  force %.2f N", id.c_str(),
+                  tool.grasping ? "holds" : "touches", tool.organ.c_str(), f.norm());
     hud.lines.emplace_back(line);
+  }
+  if (v.laparoscope) {
+    hud.lines.emplace_back(Laparoscope(r) != nullptr
+                               ? "laparoscope view (l: orbit camera)"
+                               : "laparoscope: no camera pose yet (l: orbit camera)");
+  }
+  if (v.options.observe) {
+    if (v.typing) {
+      hud.lines.push_back("note: " + v.note + "_  (Enter sends, Esc drops)");
+    } else {
+      std::snprintf(line, sizeof line,
+                    "observe-only: p pause, r resume, a annotate, n next session (%zu running)",
+                    v.sessions.size());
+      hud.lines.emplace_back(line);
+    }
   } else if (v.driving.empty()) {
-    hud.lines.emplace_back("station: t drives a tool with the keys");
+    hud.lines.emplace_back("station: t drives a tool with the keys and Shift + mouse");
   } else {
     std::snprintf(line, sizeof line,
-                  "driving %s at (%.0f, %.0f, %.0f) mm: arrows, PgUp/PgDn, c jaws",
+                  "driving %s at (%.0f, %.0f, %.0f) mm: arrows, PgUp/PgDn, Shift+drag, c jaws",
                   v.driving.c_str(), 1e3 * v.tip.x(), 1e3 * v.tip.y(), 1e3 * v.tip.z());
     hud.lines.emplace_back(line);
   }
@@ -297,34 +342,54 @@ Hud MakeHud(const Viewer& v) {
   return hud;
 }
 
+// Writes the back buffer's pixels (after a draw, before the swap) to `file` as PNG.
+bool WriteScreenshot(const Viewer& v, const std::string& file) {
+  glFinish();
+  const render::Image image = GlView::ReadPixels(v.width, v.height);
+  std::ofstream out(file, std::ios::binary);
+  const std::string png = render::EncodePng(image);
+  out.write(png.data(), static_cast<std::streamsize>(png.size()));
+  if (!out) {
+    std::fprintf(stderr, "somasim-viewer: cannot write %s\n", file.c_str());
+    return false;
+  }
+  Log(LogLevel::kInfo, "screenshot",
+      {{"file", file}, {"frames", v.frames_with_scene}, {"width", v.width}, {"height", v.height}});
+  return true;
+}
+
 void Display() {
   Viewer& v = *g_viewer;
   if (v.finished) return;
   if (!v.logged_complete && v.receiver->complete()) {
     v.logged_complete = true;
+    v.complete_at = Clock::now();
     Log(LogLevel::kInfo, "scene_complete",
         {{"organs", v.receiver->organs().size()}, {"scene", v.receiver->scene_name()}});
   }
   if (!v.camera.fitted) {
+    // Framed on the rest shapes: every viewer of the session frames it alike, however late it
+    // joined and whatever the tools were doing then.
     Eigen::Vector3d lo, hi;
-    if (v.receiver->complete() && GlView::Bounds(*v.receiver, &lo, &hi)) v.camera.Fit(lo, hi);
+    if (v.receiver->complete() && GlView::Bounds(*v.receiver, &lo, &hi, /*rest=*/true)) {
+      v.camera.Fit(lo, hi);
+    }
   }
-  v.view.Draw(*v.receiver, v.camera, MakeHud(v), v.width, v.height);
+  const ToolScene* scope = v.laparoscope ? Laparoscope(*v.receiver) : nullptr;
+  v.view->Draw(*v.receiver,
+               scope != nullptr ? ViewPose::Laparoscope(*scope) : ViewPose::Of(v.camera),
+               MakeHud(v), v.width, v.height);
   if (v.receiver->complete()) ++v.frames_with_scene;
-  if (!v.options.screenshot.empty() && v.frames_with_scene >= v.options.after_frames) {
-    glFinish();
-    const render::Image image = GlView::ReadPixels(v.width, v.height);
-    std::ofstream out(v.options.screenshot, std::ios::binary);
-    const std::string png = render::EncodePng(image);
-    out.write(png.data(), static_cast<std::streamsize>(png.size()));
-    if (!out) {
-      std::fprintf(stderr, "somasim-viewer: cannot write %s\n", v.options.screenshot.c_str());
+  if (!v.pending_screenshot.empty() && v.receiver->complete()) {
+    const bool ok = WriteScreenshot(v, v.pending_screenshot);
+    v.pending_screenshot.clear();
+    if (!ok) {
       Finish(kExitIo);
       return;
     }
-    Log(LogLevel::kInfo, "screenshot",
-        {{"file", v.options.screenshot}, {"frames", v.frames_with_scene}});
-    Finish(kExitOk);
+  }
+  if (!v.options.screenshot.empty() && v.frames_with_scene >= v.options.after_frames) {
+    Finish(WriteScreenshot(v, v.options.screenshot) ? kExitOk : kExitIo);
     return;
   }
   glutSwapBuffers();
@@ -349,68 +414,92 @@ void Display() {
   }
 }
 
-void Idle() {
-  Viewer& v = *g_viewer;
-  if (v.finished) return;
-  if (app::StopRequested()) {
-    Finish(kExitOk);
-    return;
-  }
-  if (v.options.timeout > 0.0 &&
-      std::chrono::duration<double>(Clock::now() - v.started).count() > v.options.timeout) {
-    std::fprintf(stderr, "somasim-viewer: no complete scene of session \"%s\" within %.0f s\n",
-                 v.options.session.c_str(), v.options.timeout);
-    Finish(kExitTimeout);
-    return;
-  }
-  v.receiver->Poll();
-  if (!v.options.drive.empty() && v.driving.empty() && v.receiver->complete()) {
-    StartDriving(v, v.options.drive);
-  }
-  PublishTool(v);
-  if (v.options.observe && Clock::now() - v.last_listing > std::chrono::seconds(2)) {
-    v.last_listing = Clock::now();
-    v.sessions = dds::RunningSessions(*v.participant, std::chrono::milliseconds(0));
-  }
-  glutPostRedisplay();
-  // The display rate is the frames' rate at most (60 Hz from the server); a short sleep keeps the
-  // loop from spinning on a core the station's haptic node may need.
-  std::this_thread::sleep_for(std::chrono::milliseconds(4));
-}
-
 void Reshape(int width, int height) {
   g_viewer->width = std::max(width, 1);  // minimised: 0 × 0, drawn as 1 × 1
   g_viewer->height = std::max(height, 1);
 }
 
+// The view's right and up directions and its forward one (into the screen), for moving the
+// driven tool as the user sees it.
+void ViewAxes(const Viewer& v, Eigen::Vector3d* right, Eigen::Vector3d* up,
+              Eigen::Vector3d* forward) {
+  *forward = (v.camera.target - v.camera.Eye()).normalized();
+  *right = forward->cross(Eigen::Vector3d::UnitZ());
+  if (right->norm() < 1e-9) *right = Eigen::Vector3d::UnitX();
+  right->normalize();
+  *up = right->cross(*forward);
+}
+
+// Station driving by mouse: the tip follows a drag of (dx, dy) pixels in the view plane, so that
+// at the camera's target it stays under the pointer.
+void DragTool(Viewer& v, int dx, int dy) {
+  if (v.driving.empty()) return;
+  Eigen::Vector3d right, up, forward;
+  ViewAxes(v, &right, &up, &forward);
+  const double per_pixel = 2.0 * v.camera.distance *
+                           std::tan(0.5 * v.camera.fov_deg * std::numbers::pi / 180.0) /
+                           std::max(v.height, 1);  // [m]
+  v.tip += per_pixel * (dx * right - dy * up);
+}
+
 void Mouse(int button, int state, int x, int y) {
   Viewer& v = *g_viewer;
-  if (button == 3 || button == 4) {  // wheel
-    if (state == GLUT_DOWN) v.camera.Zoom(button == 3 ? 0.9 : 1.0 / 0.9);
+  const bool shift = (glutGetModifiers() & GLUT_ACTIVE_SHIFT) != 0;
+  if (button == 3 || button == 4) {  // wheel: zoom, or with Shift move the tool along the view
+    if (state != GLUT_DOWN) return;
+    if (shift && !v.driving.empty()) {
+      Eigen::Vector3d right, up, forward;
+      ViewAxes(v, &right, &up, &forward);
+      v.tip += (button == 3 ? 0.002 : -0.002) * forward;
+    } else {
+      v.camera.Zoom(button == 3 ? 0.9 : 1.0 / 0.9);
+    }
     return;
   }
   v.button = state == GLUT_DOWN ? button : -1;
+  v.drag_tool = state == GLUT_DOWN && button == GLUT_LEFT_BUTTON && shift && !v.driving.empty();
   v.last_x = x;
   v.last_y = y;
 }
 
 void Motion(int x, int y) {
   Viewer& v = *g_viewer;
-  const double dx = static_cast<double>(x - v.last_x) / v.height;
-  const double dy = static_cast<double>(y - v.last_y) / v.height;
+  const int px = x - v.last_x, py = y - v.last_y;
+  const double dx = static_cast<double>(px) / v.height;
+  const double dy = static_cast<double>(py) / v.height;
   v.last_x = x;
   v.last_y = y;
+  if (v.drag_tool) {
+    DragTool(v, px, py);
+    return;
+  }
   if (v.button == GLUT_LEFT_BUTTON) v.camera.Orbit(-3.0 * dx, 3.0 * dy);
   if (v.button == GLUT_RIGHT_BUTTON) v.camera.Pan(-dx, dy);
   if (v.button == GLUT_MIDDLE_BUTTON) v.camera.Zoom(std::exp(2.0 * dy));
 }
 
-void Keyboard(unsigned char key, int, int) {
-  Viewer& v = *g_viewer;
+void Key(Viewer& v, unsigned char key) {
+  if (v.typing) {  // an annotation: every key is text until Enter or Esc
+    if (key == 13 || key == 10) {
+      if (!v.note.empty()) Instruct(v, 4, v.note);
+      v.typing = false;
+      v.note.clear();
+    } else if (key == 27) {
+      v.typing = false;
+      v.note.clear();
+    } else if ((key == 8 || key == 127) && !v.note.empty()) {
+      v.note.pop_back();
+    } else if (key >= ' ' && key < 127 && v.note.size() < 200) {
+      v.note.push_back(static_cast<char>(key));
+    }
+    return;
+  }
   if (key == 'q' || key == 27) Finish(kExitOk);
   if (key == 'f') v.camera.fitted = false;
+  if (key == 'l') v.laparoscope = !v.laparoscope;
   if (key == 'p') Instruct(v, 1);
   if (key == 'r') Instruct(v, 2);
+  if (key == 'a' && v.options.observe) v.typing = true;
   if (key == 'n') NextSession(v);
   if (key == 'c' && !v.driving.empty()) v.jaw_closure = v.jaw_closure > 0.5 ? 0.0 : 1.0;
   if (key == 't' && v.driving.empty()) {
@@ -423,23 +512,137 @@ void Keyboard(unsigned char key, int, int) {
   }
 }
 
+void Keyboard(unsigned char key, int, int) { Key(*g_viewer, key); }
+
 // Station driving: arrows move the tip in the view plane, Page Up / Down along the view, 1 mm
 // a press (5 mm with Shift).
-void Special(int key, int, int) {
-  Viewer& v = *g_viewer;
+void SpecialKey(Viewer& v, int key, bool shift) {
   if (v.driving.empty()) return;
-  const double step = (glutGetModifiers() & GLUT_ACTIVE_SHIFT) != 0 ? 0.005 : 0.001;  // [m]
-  const Eigen::Vector3d forward = (v.camera.target - v.camera.Eye()).normalized();
-  Eigen::Vector3d right = forward.cross(Eigen::Vector3d::UnitZ());
-  if (right.norm() < 1e-9) right = Eigen::Vector3d::UnitX();
-  right.normalize();
-  const Eigen::Vector3d up = right.cross(forward);
+  const double step = shift ? 0.005 : 0.001;  // [m]
+  Eigen::Vector3d right, up, forward;
+  ViewAxes(v, &right, &up, &forward);
   if (key == GLUT_KEY_LEFT) v.tip -= step * right;
   if (key == GLUT_KEY_RIGHT) v.tip += step * right;
   if (key == GLUT_KEY_UP) v.tip += step * up;
   if (key == GLUT_KEY_DOWN) v.tip -= step * up;
   if (key == GLUT_KEY_PAGE_UP) v.tip += step * forward;
   if (key == GLUT_KEY_PAGE_DOWN) v.tip -= step * forward;
+}
+
+void Special(int key, int, int) {
+  SpecialKey(*g_viewer, key, (glutGetModifiers() & GLUT_ACTIVE_SHIFT) != 0);
+}
+
+void Idle();
+
+// The window and its GL context, with every callback; the view's GL objects are made anew.
+void CreateViewerWindow(Viewer& v) {
+  glutInitWindowSize(v.width, v.height);
+  v.window = glutCreateWindow(("somasim-viewer: " + v.options.session).c_str());
+  v.view = std::make_unique<GlView>();
+  glutDisplayFunc(Display);
+  glutIdleFunc(Idle);
+  glutReshapeFunc(Reshape);
+  glutMouseFunc(Mouse);
+  glutMotionFunc(Motion);
+  glutKeyboardFunc(Keyboard);
+  glutSpecialFunc(Special);
+}
+
+// Runs the script's events whose moment has come, in order.
+void RunScript(Viewer& v) {
+  while (v.next_event < v.script.size() && !v.finished) {
+    const ViewerEvent& e = v.script[v.next_event];
+    if (!v.receiver->complete() && v.complete_at == Clock::time_point{}) return;
+    bool due = false;
+    switch (e.when) {
+      case ViewerEvent::When::kFrame:
+        due = v.frames_with_scene >= static_cast<int>(e.at);
+        break;
+      case ViewerEvent::When::kSim:
+        due = v.receiver->sim_time() >= e.at;
+        break;
+      case ViewerEvent::When::kWall:
+        due = v.complete_at != Clock::time_point{} &&
+              std::chrono::duration<double>(Clock::now() - v.complete_at).count() >= e.at;
+        break;
+    }
+    if (!due) return;
+    // A screenshot is taken after the next draw; the events after it wait for it.
+    if (!v.pending_screenshot.empty()) return;
+    ++v.next_event;
+    Log(LogLevel::kInfo, "script_event", {{"line", e.line}, {"frames", v.frames_with_scene}});
+    switch (e.action) {
+      case ViewerEvent::Action::kKey:
+        Key(v, static_cast<unsigned char>(e.key));
+        break;
+      case ViewerEvent::Action::kSpecialKey:
+        SpecialKey(v, e.key, false);
+        break;
+      case ViewerEvent::Action::kScreenshot:
+        v.pending_screenshot = e.text;
+        return;
+      case ViewerEvent::Action::kResize:
+        glutReshapeWindow(e.a, e.b);
+        break;
+      case ViewerEvent::Action::kHide:
+        glutHideWindow();
+        break;
+      case ViewerEvent::Action::kShow:
+        glutShowWindow();
+        break;
+      case ViewerEvent::Action::kIconify:
+        glutIconifyWindow();
+        break;
+      case ViewerEvent::Action::kRecreate:
+        // What a lost GL context leaves: nothing of the old one is used again.
+        v.view.reset();
+        glutDestroyWindow(v.window);
+        CreateViewerWindow(v);
+        Log(LogLevel::kInfo, "window_recreated", {{"window", v.window}});
+        return;  // the new window's callbacks run from the next loop
+      case ViewerEvent::Action::kDrag:
+        DragTool(v, e.a, e.b);
+        break;
+      case ViewerEvent::Action::kAnnotate:
+        Instruct(v, 4, e.text);
+        break;
+      case ViewerEvent::Action::kQuit:
+        Finish(kExitOk);
+        return;
+    }
+  }
+}
+
+void Idle() {
+  Viewer& v = *g_viewer;
+  if (v.finished) return;
+  if (app::StopRequested()) {
+    Finish(kExitOk);
+    return;
+  }
+  if (v.options.timeout > 0.0 && !v.receiver->complete() && !v.logged_complete &&
+      std::chrono::duration<double>(Clock::now() - v.started).count() > v.options.timeout) {
+    std::fprintf(stderr, "somasim-viewer: no complete scene of session \"%s\" within %.0f s\n",
+                 v.options.session.c_str(), v.options.timeout);
+    Finish(kExitTimeout);
+    return;
+  }
+  v.receiver->Poll();
+  if (!v.options.drive.empty() && v.driving.empty() && v.receiver->complete()) {
+    StartDriving(v, v.options.drive);
+  }
+  RunScript(v);
+  if (v.finished) return;
+  PublishTool(v);
+  if (v.options.observe && Clock::now() - v.last_listing > std::chrono::seconds(2)) {
+    v.last_listing = Clock::now();
+    v.sessions = dds::RunningSessions(*v.participant, std::chrono::milliseconds(0));
+  }
+  glutPostRedisplay();
+  // The display rate is the frames' rate at most (60 Hz from the server); a short sleep keeps the
+  // loop from spinning on a core the station's haptic node may need.
+  std::this_thread::sleep_for(std::chrono::milliseconds(4));
 }
 
 // GLUT's fatal errors (no display, no visual): a clear message and our exit code.
@@ -504,6 +707,9 @@ int ViewerMain(int argc, char** argv) {
   cli.add_option("--report", options.report,
                  "when stopping, write a JSON report here: frame time and frame latency "
                  "percentiles [ms], dropped samples");
+  cli.add_option("--script", options.script,
+                 "a viewer script: keys, resizes, screenshots, ... at stated frames or times "
+                 "(docs/viewer.md)");
   try {
     cli.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -521,6 +727,14 @@ int ViewerMain(int argc, char** argv) {
   app::InstallStopSignals();
   Viewer viewer;
   viewer.options = options;
+  if (!options.script.empty()) {
+    try {
+      viewer.script = LoadViewerScript(options.script);
+    } catch (const ViewerScriptError& e) {
+      std::fprintf(stderr, "somasim-viewer: --script %s\n", e.what());
+      return kExitUsage;
+    }
+  }
   try {
     const std::string config = dds::ReadDdsConfig(options.dds_config);
     if (!config.empty()) viewer.domain = std::make_unique<dds::Domain>(options.domain, config);
@@ -561,20 +775,14 @@ int ViewerMain(int argc, char** argv) {
   glutInitDisplayMode(GLUT_RGB | GLUT_DOUBLE | GLUT_DEPTH);
   glutInitWindowSize(options.width, options.height);
   glutSetOption(GLUT_ACTION_ON_WINDOW_CLOSE, GLUT_ACTION_GLUTMAINLOOP_RETURNS);
-  const int window = glutCreateWindow(("somasim-viewer: " + options.session).c_str());
   viewer.width = options.width;
   viewer.height = options.height;
-  glutDisplayFunc(Display);
-  glutIdleFunc(Idle);
-  glutReshapeFunc(Reshape);
-  glutMouseFunc(Mouse);
-  glutMotionFunc(Motion);
-  glutKeyboardFunc(Keyboard);
-  glutSpecialFunc(Special);
+  CreateViewerWindow(viewer);
   glutMainLoop();
   // The window was closed (or Finish left the loop): stop as on a signal.
   if (!viewer.finished) Finish(kExitOk);
-  if (glutGetWindow() == window) glutDestroyWindow(window);
+  viewer.view.reset();
+  if (glutGetWindow() == viewer.window) glutDestroyWindow(viewer.window);
   glutExit();  // frees GLUT's state and the GL context
   const ReceiverCounters& c = viewer.receiver->counters();
   Log(LogLevel::kInfo, "stopped",

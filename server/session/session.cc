@@ -103,6 +103,9 @@ scene::Scene ServerDefaultScene(std::string_view organ) {
   scene::Tool* scalpel = s.add_tool();
   scalpel->set_id("scalpel");
   scalpel->mutable_scalpel()->set_blade_length(0.010);
+  scene::Tool* laparoscope = s.add_tool();  // a pose only: the viewers' l key looks through it
+  laparoscope->set_id("laparoscope");
+  laparoscope->mutable_camera();
   return s;
 }
 

@@ -160,9 +160,10 @@ class Session {
 // organs at a 10 ms step, the interactive rate of SPEC §1's 0.1–10 ms range for volume FEM, with
 // at most 30 conjugate-gradient iterations per step and light Rayleigh damping; seed 002's closed
 // surfaces spleen600, kidney2000 and gallbladder5400 as it runs them, implicit mass-spring shells
-// at a 5 ms step with every node anchored to its rest position, see session.cc), with three tools:
-// "probe", "grasper" (jaws 15 mm, grasp radius 3 mm) and "scalpel" (blade 10 mm). Throws
-// std::invalid_argument for an unknown organ.
+// at a 5 ms step with every node anchored to its rest position, see session.cc), with four tools:
+// "probe", "grasper" (jaws 15 mm, grasp radius 3 mm), "scalpel" (blade 10 mm) and the
+// "laparoscope" (a camera: a pose, no contact). Throws std::invalid_argument for an unknown
+// organ.
 scene::Scene ServerDefaultScene(std::string_view organ);
 
 // A scene tool's shape (defaults for zero dimensions, as idl/scene.proto gives them).

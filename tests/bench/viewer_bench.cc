@@ -62,6 +62,15 @@ void ViewerFrame(benchmark::State& bench, const std::string& organ, uint32_t dom
     return;
   }
   setenv("DISPLAY", display.c_str(), 1);
+  // Stopped with SIGTERM on every way out, so that Xvfb removes its lock file (the
+  // ChildProcess destructor's SIGKILL would leave /tmp/.X<n>-lock behind).
+  struct StopGently {
+    app::ChildProcess& p;
+    ~StopGently() {
+      p.Signal(SIGTERM);
+      p.Wait(std::chrono::seconds(10));
+    }
+  } stop_xvfb{*xvfb};
   const std::string session = "viewer-bench";
   for (auto _ : bench) {
     app::ChildProcess server({BinPath("somasim-server"), "--scene", "builtin:" + organ, "--session",

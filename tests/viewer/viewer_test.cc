@@ -5,14 +5,17 @@
 // where the organ is; a viewer that joins late shows exactly the server's last frame (its
 // --dump-positions equals the server's --dump-final byte for byte); bad command lines are
 // refused by name; an observe-only viewer has no writer on any topic; a station drives a tool
-// without an arm; it lists the running sessions. Domains 193..199 (193 is also the
-// viewer benchmark's: the two never run together).
+// without an arm, by keys and mouse; it lists the running sessions; after a scripted
+// deformation the organ's silhouette changes; resizing, minimising and losing the GL context do
+// not stop it; instructors annotate and switch sessions. Domains 160..163 and 193..199 (193 is
+// also the viewer benchmark's: the two never run together).
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/stat.h>
 #include <unistd.h>
 #include <zlib.h>
 
+#include <Eigen/Core>
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
@@ -20,11 +23,13 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <span>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "common/dds/topics.h"
+#include "server/contact/force_model_wire.h"
 #include "tests/server/app/session_client.h"
 #include "tests/support/sanitizer.h"
 #include "viewer/scene_receiver.h"
@@ -176,6 +181,160 @@ TEST(SceneReceiver, ShowsGoodSamplesAndDropsAndCountsMalformedOnes) {
   EXPECT_FALSE(r.complete());
 }
 
+// A server is alive while its heartbeats come and for a lease (500 ms) after the last; one just
+// heard of (its session arrived, its first heartbeat not yet) is alive for a lease too, so a
+// viewer that gets the transient-local samples first does not call a starting server gone.
+TEST(SceneReceiver, ShowsAServerGoneOnlyWhenItsHeartbeatStopsForALease) {
+  Samples s;
+  SceneReceiver r(s.participant, s.topics, "beat");
+  EXPECT_TRUE(r.server_gone(std::chrono::steady_clock::now()));  // none seen yet
+  dds::Writer<somasim_wire_SessionInfo> session(s.participant, s.topics.session,
+                                                dds::SessionQos("beat"));
+  dds::Writer<somasim_wire_Heartbeat> heartbeat(s.participant, s.topics.heartbeat,
+                                                dds::HeartbeatQos("beat"));
+  somasim_wire_SessionInfo info{};
+  info.format_version = dds::kWireFormatVersion;
+  info.server_id = 11;
+  info.scene_name = const_cast<char*>("beat");
+  session.Write(info);
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.has_session(); }));
+  const auto now = [] { return std::chrono::steady_clock::now(); };
+  EXPECT_FALSE(r.server_gone(now()));  // just heard of, no heartbeat yet
+  EXPECT_TRUE(r.server_gone(now() + milliseconds(600)));
+  somasim_wire_Heartbeat beat{};
+  beat.format_version = dds::kWireFormatVersion;
+  beat.server_id = 11;
+  beat.state = 2;
+  for (int i = 0; i < 8; ++i) {  // 0.8 s of heartbeats every 100 ms: alive throughout
+    beat.seq = static_cast<uint64_t>(i + 1);
+    heartbeat.Write(beat);
+    std::this_thread::sleep_for(milliseconds(100));
+    r.Poll();
+    EXPECT_FALSE(r.server_gone(now())) << i;
+  }
+  EXPECT_EQ(r.server_state(), 2u);
+  std::this_thread::sleep_for(milliseconds(300));  // silent, within the lease
+  r.Poll();
+  if (!somasim::testing::kUnderSanitizer) {  // a 200 ms margin
+    EXPECT_FALSE(r.server_gone(now()));
+  }
+  std::this_thread::sleep_for(milliseconds(400));  // silent for 0.7 s: gone
+  r.Poll();
+  EXPECT_TRUE(r.server_gone(now()));
+}
+
+// A grasper's force and grasped points from the server's local force models: the force the
+// model gives at the commanded tip, the surface nodes within the scene's grasp radius of the
+// jaws when the grasp begins (the scene text's 5 mm, not the 3 mm default), none after the
+// release; a model that is not usable (NaN, asymmetric stiffness) is dropped and counted.
+TEST(SceneReceiver, ShowsTheRenderedForceAndTheGraspedPoints) {
+  Samples s;
+  SceneReceiver r(s.participant, s.topics, "grasp");
+  dds::Writer<somasim_wire_SessionInfo> session(s.participant, s.topics.session,
+                                                dds::SessionQos("grasp"));
+  dds::Writer<somasim_wire_OrganTopology> topology(s.participant, s.topics.topology,
+                                                   dds::TopologyQos("grasp"));
+  dds::Writer<somasim_wire_MeshFrame> frames(s.participant, s.topics.frame, dds::FrameQos("grasp"));
+  dds::Writer<somasim_wire_ToolCommand> commands(s.participant, s.topics.tool_command,
+                                                 dds::ToolCommandQos("grasp"));
+  dds::Writer<somasim_wire_ForceModel> models(s.participant, s.topics.force_model,
+                                              dds::ForceModelQos("grasp"));
+  somasim_wire_OrganInfo organ{};
+  organ.id = const_cast<char*>("a");
+  somasim_wire_ToolInfo tool{};
+  tool.id = const_cast<char*>("jaws");
+  tool.kind = const_cast<char*>("grasper");
+  tool.shaft_length = 0.3;
+  tool.shaft_radius = 0.0025;
+  tool.jaw_length = 0.015;
+  somasim_wire_SessionInfo info{};
+  info.format_version = dds::kWireFormatVersion;
+  info.server_id = 9;
+  info.scene_name = const_cast<char*>("grasp");
+  info.scene_text = const_cast<char*>(
+      "format_version: 1 tool { id: \"jaws\" grasper { jaw_length: 0.015 grasp_radius: 0.005 } }");
+  SetSequence(&info.organs, &organ, 1);
+  SetSequence(&info.tools, &tool, 1);
+  session.Write(info);
+  // Nodes 0 and 1 lie 1 mm and 4.1 mm from the jaws below; 2 and 3 10 cm away.
+  std::vector<float> rest = {0, 0, 0, 0.004F, 0, 0, 0.1F, 0, 0, 0, 0.1F, 0};
+  std::vector<uint32_t> tris = {0, 1, 2, 0, 2, 3};
+  std::vector<uint8_t> inner = {0, 0};
+  topology.Write(Topology("a", 9, 1, &rest, &tris, &inner));
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.organs().count("a") == 1; }));
+  frames.Write(Keyframe("a", 9, 1, 1, &rest));
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.complete(); }));
+  EXPECT_EQ(r.tools().at("jaws").grasp_radius, 0.005);
+  EXPECT_EQ(r.tools().at("jaws").jaw_length, 0.015);
+
+  const auto command = [&](double z, uint64_t seq) {
+    somasim_wire_ToolCommand c{};
+    c.tool = const_cast<char*>("jaws");
+    c.format_version = dds::kWireFormatVersion;
+    c.station = const_cast<char*>("test");
+    c.seq = seq;
+    c.position[2] = z;
+    c.orientation[0] = 1.0;
+    commands.Write(c);
+    ASSERT_TRUE(PollUntil(&r, [&] { return r.tools().at("jaws").position[2] == z; }));
+  };
+  const auto model = [&](const contact::LocalForceModel& m) {
+    somasim_wire_ForceModel w{};
+    contact::ToWire(m, &w);
+    w.tool = const_cast<char*>("jaws");
+    w.format_version = dds::kWireFormatVersion;
+    w.server_id = 9;
+    w.organ = const_cast<char*>("a");
+    models.Write(w);
+  };
+  // In contact 2 mm below the surface z = 0 at k_n = 500 N/m: 1 N up.
+  command(-0.002, 1);
+  contact::LocalForceModel touch;
+  touch.sequence = 1;
+  touch.in_contact = true;
+  touch.contact_stiffness = 500.0;
+  model(touch);
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.tools().at("jaws").in_contact; }));
+  EXPECT_NEAR(r.tools().at("jaws").Force().z(), 1.0, 1e-12);
+  EXPECT_EQ(r.tools().at("jaws").Force().head<2>().norm(), 0.0);
+  EXPECT_EQ(r.tools().at("jaws").organ, "a");
+  EXPECT_TRUE(r.tools().at("jaws").held_nodes.empty());
+
+  // Unusable models: dropped and counted, the last good one kept.
+  contact::LocalForceModel bad = touch;
+  bad.sequence = 2;
+  bad.contact_stiffness = std::numeric_limits<double>::quiet_NaN();
+  model(bad);  // keep-last 1 per tool: one at a time
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.counters().bad_tool_samples == 1; }));
+  bad = touch;
+  bad.sequence = 3;
+  bad.tissue_stiffness(0, 1) = 100.0;  // not symmetric
+  model(bad);
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.counters().bad_tool_samples == 2; }))
+      << r.counters().bad_tool_samples;
+  EXPECT_NEAR(r.tools().at("jaws").Force().z(), 1.0, 1e-12);
+
+  // The jaws close 1 mm above node 0: nodes 0 and 1 are held, nearest first.
+  command(0.001, 2);
+  contact::LocalForceModel grasp;
+  grasp.sequence = 4;
+  grasp.grasping = true;
+  grasp.grasp_anchor = Eigen::Vector3d(0.0, 0.0, 0.0);
+  grasp.grasp_stiffness = 200.0 * Eigen::Matrix3d::Identity();
+  model(grasp);
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.tools().at("jaws").grasping; }));
+  EXPECT_EQ(r.tools().at("jaws").held_nodes, (std::vector<uint32_t>{0, 1}));
+  EXPECT_EQ(r.tools().at("jaws").held_organ, "a");
+  EXPECT_NEAR(r.tools().at("jaws").Force().z(), -0.2, 1e-12);  // pulled back to the anchor
+  // Released: no grasped points.
+  contact::LocalForceModel open;
+  open.sequence = 5;
+  model(open);
+  ASSERT_TRUE(PollUntil(&r, [&] { return !r.tools().at("jaws").grasping; }));
+  EXPECT_TRUE(r.tools().at("jaws").held_nodes.empty());
+  EXPECT_EQ(r.tools().at("jaws").Force().norm(), 0.0);
+}
+
 // ---- the program under Xvfb ---------------------------------------------------------------
 
 // An Xvfb server on a free display number, DISPLAY set to it for the children started after.
@@ -201,6 +360,16 @@ class Xvfb {
       }
     }
   }
+  // Stopped with SIGTERM, so that it removes its lock file and socket (ChildProcess would
+  // SIGKILL it, leaving /tmp/.X<n>-lock to block that display number for the next tests).
+  ~Xvfb() {
+    if (process_) {
+      process_->Signal(SIGTERM);
+      process_->Wait(seconds(10));
+    }
+  }
+  Xvfb(const Xvfb&) = delete;
+  Xvfb& operator=(const Xvfb&) = delete;
   bool ok() const { return process_ != nullptr; }
 
  private:
@@ -474,15 +643,23 @@ TEST(ViewerProgram, StationDrivesAToolWithoutAnArm) {
   AllTopics all(195, "station");
   auto server = StartProgram("somasim-server", ServerArgs("station", 195, {"--duration", "60"}),
                              dir + "/server.log");
-  auto viewer =
-      StartViewer(ViewerArgs("station", 195, {"--drive", "probe", "--station", "station-3"}),
-                  dir + "/viewer.log");
+  // A Shift + left drag of 60 pixels to the right (scripted) moves the tip across the view:
+  // horizontally, by 60 pixels' worth at the camera's target.
+  std::ofstream(dir + "/drag.txt") << "somasim-viewer-script 1\nframe 20 drag 60 0\n";
+  auto viewer = StartViewer(
+      ViewerArgs("station", 195,
+                 {"--drive", "probe", "--station", "station-3", "--script", dir + "/drag.txt"}),
+      dir + "/viewer.log");
   int commands = 0;
   bool well_formed = true;
   uint64_t received_by_server = 0;
-  for (int i = 0; i < 1000 && (commands < 20 || received_by_server == 0); ++i) {
+  double first[3] = {}, last[3] = {};
+  for (int i = 0; i < 1000 && (commands < 20 || received_by_server == 0 ||
+                               std::hypot(last[0] - first[0], last[1] - first[1]) < 0.01);
+       ++i) {
     all.tool_command.Take([&](const somasim_wire_ToolCommand& c, const dds_sample_info_t&) {
-      ++commands;
+      if (commands++ == 0) std::copy(c.position, c.position + 3, first);
+      std::copy(c.position, c.position + 3, last);
       well_formed = well_formed && std::string(c.tool) == "probe" &&
                     std::string(c.station) == "station-3" && std::isfinite(c.position[2]) &&
                     c.orientation[0] == 1.0;
@@ -494,6 +671,9 @@ TEST(ViewerProgram, StationDrivesAToolWithoutAnArm) {
   }
   EXPECT_GE(commands, 20);
   EXPECT_TRUE(well_formed);
+  EXPECT_GT(std::hypot(last[0] - first[0], last[1] - first[1]), 0.01) << "the drag moved nothing";
+  EXPECT_LT(std::hypot(last[0] - first[0], last[1] - first[1]), 0.1);
+  EXPECT_EQ(last[2], first[2]);  // across the view: horizontal
   EXPECT_GT(received_by_server, 0u) << ReadText(dir + "/server.log");
   EXPECT_NE(ReadText(dir + "/viewer.log").find("\"driving\""), std::string::npos);
   viewer->Signal(SIGTERM);
@@ -529,6 +709,279 @@ TEST(ViewerProgram, ListsTheRunningSessions) {
   EXPECT_EQ(ward1->Wait(seconds(20)), 0) << ReadText(dir + "/ward1.log");
   EXPECT_EQ(ward2->Wait(seconds(20)), 0) << ReadText(dir + "/ward2.log");
   EXPECT_EQ(list("none.log"), "");
+}
+
+// What a screenshot's pixel shows: the dark background, the organ (the tissue's red, lit: red
+// well above green and blue, which stay close), or something else (tools, the force arrow,
+// the heads-up text).
+enum class Pixel { kBackground, kOrgan, kOther };
+
+Pixel Classify(const Png& png, size_t i) {
+  const int r = png.rgb[3 * i], g = png.rgb[3 * i + 1], b = png.rgb[3 * i + 2];
+  if (r < 40 && g < 40 && b < 45) return Pixel::kBackground;
+  if (r > 60 && r > g + 30 && r > b + 30 && std::abs(g - b) < 40) return Pixel::kOrgan;
+  return Pixel::kOther;
+}
+
+// The intersection over union of two pictures' organ masks, over the pixels where neither
+// shows something else (a tool in front of the organ is not the organ's silhouette changing).
+double OrganIoU(const Png& a, const Png& b) {
+  size_t both = 0, either = 0;
+  for (size_t i = 0; i < a.rgb.size() / 3; ++i) {
+    const Pixel pa = Classify(a, i), pb = Classify(b, i);
+    if (pa == Pixel::kOther || pb == Pixel::kOther) continue;
+    both += static_cast<size_t>(pa == Pixel::kOrgan && pb == Pixel::kOrgan);
+    either += static_cast<size_t>(pa == Pixel::kOrgan || pb == Pixel::kOrgan);
+  }
+  return either == 0 ? 0.0 : static_cast<double>(both) / static_cast<double>(either);
+}
+
+size_t OrganPixels(const Png& png) {
+  size_t n = 0;
+  for (size_t i = 0; i < png.rgb.size() / 3; ++i) n += Classify(png, i) == Pixel::kOrgan;
+  return n;
+}
+
+// The organ's silhouette changes after a scripted deformation: a viewer's screenshot before,
+// then the test grasps the kidney at its outermost node across the view and pulls it 3 cm
+// sideways (tool commands at 100 Hz, as a haptic node sends them), and a second viewer's
+// screenshot while it is held. Both viewers frame the rest shape, so the two pictures are of
+// the same view; their organ masks' IoU is below 0.98, and the two undeformed pictures of a
+// third viewer agree (IoU above 0.99: the test can tell a change from noise).
+TEST(ViewerProgram, SilhouetteChangesAfterAScriptedDeformation) {
+  Xvfb x;
+  ASSERT_TRUE(x.ok()) << "Xvfb did not start";
+  const std::string dir = TempDir("silhouette");
+  auto server = StartProgram("somasim-server", ServerArgs("sil", 160, {"--duration", "120"}),
+                             dir + "/server.log");
+  testing::SessionClient client(160, "sil");
+  ASSERT_TRUE(client.PollUntil(
+      [&] {
+        const auto it = client.organs().find("kidney424");
+        return it != client.organs().end() && it->second.decoder && it->second.decoder->has_shape();
+      },
+      seconds(60)))
+      << ReadText(dir + "/server.log");
+  const auto shot = [&](const std::string& name) {
+    auto viewer = StartViewer(ViewerArgs("sil", 160,
+                                         {"--screenshot", dir + "/" + name + ".png",
+                                          "--after-frames", "5", "--timeout", "60"}),
+                              dir + "/" + name + ".log");
+    // The test keeps its commands flowing while the viewer runs (the grasp must hold).
+    return viewer;
+  };
+  for (const std::string name : {"before", "again"}) {
+    auto viewer = shot(name);
+    ASSERT_EQ(viewer->Wait(seconds(90)), 0) << ReadText(dir + "/" + name + ".log");
+  }
+  // The default orbit camera's right-hand direction (yaw 0.6 rad): horizontal, across the view.
+  const Eigen::Vector3d right(-std::sin(0.6), std::cos(0.6), 0.0);
+  const std::span<const float> now = client.organs()["kidney424"].decoder->positions();
+  uint32_t node = 0;
+  for (uint32_t i = 1; i < now.size() / 3; ++i) {
+    const auto at = [&](uint32_t k) {
+      return Eigen::Vector3d(now[3 * k], now[3 * k + 1], now[3 * k + 2]).dot(right);
+    };
+    if (at(i) > at(node)) node = i;
+  }
+  const Eigen::Vector3d start(now[3 * node], now[3 * node + 1], now[3 * node + 2]);
+  uint64_t seq = 0;
+  const auto send = [&](const Eigen::Vector3d& tip, double jaw) {
+    somasim_wire_ToolCommand c =
+        testing::ToolCommandAt("grasper", tip.x(), tip.y(), tip.z(), ++seq);
+    c.jaw_closure = jaw;
+    client.SendToolCommand(c);
+    client.Poll();
+    std::this_thread::sleep_for(milliseconds(10));
+  };
+  for (int i = 0; i < 30; ++i) send(start, 0.0);  // open jaws at the node
+  for (int i = 0; i < 30; ++i) send(start, 1.0);  // closed: the node and its neighbours held
+  for (int i = 0; i <= 100; ++i) send(start + 0.0003 * i * right, 1.0);  // 3 cm in 1 s
+  const Eigen::Vector3d end = start + 0.03 * right;
+  for (int i = 0; i < 100; ++i) send(end, 1.0);  // settles
+  const auto moved = [&] {
+    const std::span<const float> p = client.organs()["kidney424"].decoder->positions();
+    return (Eigen::Vector3d(p[3 * node], p[3 * node + 1], p[3 * node + 2]) - start).dot(right);
+  };
+  EXPECT_GT(moved(), 0.015) << "the grasped node did not follow the jaws";
+  auto viewer = shot("after");
+  for (int i = 0; i < 9000 && viewer->Wait(milliseconds(0)) == -1; ++i) send(end, 1.0);
+  ASSERT_EQ(viewer->Wait(seconds(1)), 0) << ReadText(dir + "/after.log");
+  EXPECT_GT(moved(), 0.015);
+  server->Signal(SIGTERM);
+  EXPECT_EQ(server->Wait(seconds(20)), 0) << ReadText(dir + "/server.log");
+
+  const Png before = DecodePng(ReadText(dir + "/before.png"));
+  const Png again = DecodePng(ReadText(dir + "/again.png"));
+  const Png after = DecodePng(ReadText(dir + "/after.png"));
+  ASSERT_EQ(before.rgb.size(), 320u * 240u * 3u);
+  ASSERT_EQ(again.rgb.size(), before.rgb.size());
+  ASSERT_EQ(after.rgb.size(), before.rgb.size());
+  ASSERT_GT(OrganPixels(before), 320u * 240u / 20u);
+  const double same = OrganIoU(before, again);
+  const double changed = OrganIoU(before, after);
+  std::printf("organ IoU: undeformed %.4f, deformed %.4f (pixels %zu -> %zu)\n", same, changed,
+              OrganPixels(before), OrganPixels(after));
+  EXPECT_GT(same, 0.99);
+  EXPECT_LT(changed, 0.98);
+  EXPECT_GT(changed, 0.5);  // the same organ in the same view
+}
+
+// Writes a viewer script into `dir` and returns its path.
+std::string WriteScript(const std::string& dir, const std::string& body) {
+  const std::string path = dir + "/script.txt";
+  std::ofstream(path) << "somasim-viewer-script 1\n" << body;
+  return path;
+}
+
+// Resizing, minimising (asking for it, after which freeglut stops drawing; without a window
+// manager the window stays mapped, so the script then unmaps and maps it, as a window manager
+// minimises and restores) and losing the GL context (the window and its context destroyed and
+// made anew) do not stop the viewer: once the window is shown again it draws the organ at the
+// window's new size, and it exits 0.
+TEST(ViewerProgram, SurvivesResizeMinimiseAndContextLoss) {
+  Xvfb x;
+  ASSERT_TRUE(x.ok()) << "Xvfb did not start";
+  const std::string dir = TempDir("window");
+  auto server = StartProgram("somasim-server", ServerArgs("win", 161, {"--duration", "120"}),
+                             dir + "/server.log");
+  const std::string script = WriteScript(dir,
+                                         "frame 3 resize 400 300\n"
+                                         "frame 8 screenshot " +
+                                             dir +
+                                             "/resized.png\n"
+                                             "frame 9 iconify\n"
+                                             "wall 1 hide\n"
+                                             "wall 2 show\n"
+                                             "frame 14 resize 16 16\n"
+                                             "frame 17 resize 400 300\n"
+                                             "frame 20 recreate\n"
+                                             "frame 26 screenshot " +
+                                             dir +
+                                             "/recreated.png\n"
+                                             "frame 27 recreate\n"
+                                             "frame 28 recreate\n"
+                                             "frame 32 screenshot " +
+                                             dir +
+                                             "/again.png\n"
+                                             "frame 33 quit\n");
+  auto viewer = StartViewer(ViewerArgs("win", 161, {"--script", script, "--timeout", "60"}),
+                            dir + "/viewer.log");
+  ASSERT_EQ(viewer->Wait(seconds(120)), 0) << ReadText(dir + "/viewer.log");
+  server->Signal(SIGTERM);
+  EXPECT_EQ(server->Wait(seconds(20)), 0) << ReadText(dir + "/server.log");
+  const std::string log = ReadText(dir + "/viewer.log");
+  EXPECT_NE(log.find("window_recreated"), std::string::npos) << log;
+  for (const std::string name : {"resized", "recreated", "again"}) {
+    const Png png = DecodePng(ReadText(dir + "/" + name + ".png"));
+    EXPECT_EQ(png.width, 400) << name;
+    EXPECT_EQ(png.height, 300) << name;
+    EXPECT_GT(OrganPixels(png), 400u * 300u / 20u) << name;
+  }
+}
+
+// The l key looks through the scene's laparoscope: with the camera tool held 6 cm above the
+// organ's centre, looking down (identity orientation: the view is down the shaft, out of the
+// tip), the picture's centre is organ and the picture differs from the orbit camera's.
+TEST(ViewerProgram, LooksThroughTheLaparoscope) {
+  Xvfb x;
+  ASSERT_TRUE(x.ok()) << "Xvfb did not start";
+  const std::string dir = TempDir("scope");
+  auto server = StartProgram("somasim-server", ServerArgs("scope", 163, {"--duration", "120"}),
+                             dir + "/server.log");
+  testing::SessionClient client(163, "scope");
+  ASSERT_TRUE(client.PollUntil(
+      [&] {
+        const auto it = client.organs().find("kidney424");
+        return it != client.organs().end() && it->second.decoder && it->second.decoder->has_shape();
+      },
+      seconds(60)))
+      << ReadText(dir + "/server.log");
+  const std::span<const float> p = client.organs()["kidney424"].decoder->positions();
+  Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e9), hi = -lo;
+  for (size_t i = 0; i < p.size() / 3; ++i) {
+    const Eigen::Vector3d v(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
+    lo = lo.cwiseMin(v);
+    hi = hi.cwiseMax(v);
+  }
+  const Eigen::Vector3d eye(0.5 * (lo.x() + hi.x()), 0.5 * (lo.y() + hi.y()), hi.z() + 0.06);
+  const std::string script = dir + "/script.txt";
+  std::ofstream(script) << "somasim-viewer-script 1\n"
+                           "frame 3 screenshot "
+                        << dir << "/orbit.png\nframe 4 key l\nframe 8 screenshot " << dir
+                        << "/scope.png\nframe 9 quit\n";
+  auto viewer = StartViewer(ViewerArgs("scope", 163, {"--script", script, "--timeout", "60"}),
+                            dir + "/viewer.log");
+  uint64_t seq = 0;
+  for (int i = 0; i < 9000 && viewer->Wait(milliseconds(0)) == -1; ++i) {
+    client.SendToolCommand(testing::ToolCommandAt("laparoscope", eye.x(), eye.y(), eye.z(), ++seq));
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  ASSERT_EQ(viewer->Wait(seconds(1)), 0) << ReadText(dir + "/viewer.log");
+  server->Signal(SIGTERM);
+  EXPECT_EQ(server->Wait(seconds(20)), 0) << ReadText(dir + "/server.log");
+  const Png orbit = DecodePng(ReadText(dir + "/orbit.png"));
+  const Png scope = DecodePng(ReadText(dir + "/scope.png"));
+  ASSERT_EQ(scope.rgb.size(), 320u * 240u * 3u);
+  ASSERT_EQ(orbit.rgb.size(), scope.rgb.size());
+  int centre = 0;
+  for (int y = 110; y < 130; ++y) {
+    for (int xx = 150; xx < 170; ++xx) {
+      centre += Classify(scope, static_cast<size_t>(y) * 320 + xx) == Pixel::kOrgan;
+    }
+  }
+  EXPECT_GT(centre, 300) << "of 400 centre pixels";
+  EXPECT_LT(OrganIoU(orbit, scope), 0.9);
+  std::printf("laparoscope: organ pixels %zu (orbit %zu), IoU with the orbit view %.3f\n",
+              OrganPixels(scope), OrganPixels(orbit), OrganIoU(orbit, scope));
+}
+
+// An instructor's annotations reach the session: one from the script's annotate event, one
+// typed (a, the text, Enter); one typed and dropped with Esc does not. The server publishes
+// each as an instructor-note event; n switches the instructor to the next running session.
+TEST(ViewerProgram, InstructorAnnotatesAndSwitchesSessions) {
+  Xvfb x;
+  ASSERT_TRUE(x.ok()) << "Xvfb did not start";
+  const std::string dir = TempDir("annotate");
+  AllTopics all(162, "ward-a");
+  auto ward_a = StartProgram("somasim-server", ServerArgs("ward-a", 162, {"--duration", "120"}),
+                             dir + "/a.log");
+  auto ward_b = StartProgram("somasim-server", ServerArgs("ward-b", 162, {"--duration", "120"}),
+                             dir + "/b.log");
+  const std::string script = WriteScript(dir,
+                                         "frame 2 annotate check the hilum\n"
+                                         "frame 3 key a\nframe 3 key o\nframe 3 key k\n"
+                                         "frame 3 key x\nframe 3 key backspace\n"
+                                         "frame 3 key enter\n"
+                                         "frame 4 key a\nframe 4 key z\nframe 4 key escape\n"
+                                         "wall 3 key n\n"
+                                         "wall 8 quit\n");
+  auto viewer = StartViewer(
+      ViewerArgs("ward-a", 162,
+                 {"--observe", "--station", "instructor-2", "--script", script, "--timeout", "60"}),
+      dir + "/viewer.log");
+  ASSERT_EQ(viewer->Wait(seconds(120)), 0) << ReadText(dir + "/viewer.log");
+  std::vector<std::string> notes, events;
+  all.instructor.Take([&](const somasim_wire_InstructorCommand& c, const dds_sample_info_t&) {
+    EXPECT_EQ(c.kind, 4u);
+    EXPECT_STREQ(c.instructor, "instructor-2");
+    notes.emplace_back(c.text);
+  });
+  for (int i = 0; i < 200 && events.size() < 2; ++i) {
+    all.event.Take([&](const somasim_wire_SessionEvent& e, const dds_sample_info_t&) {
+      if (e.kind == 10) events.emplace_back(e.text);
+    });
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  EXPECT_EQ(notes, (std::vector<std::string>{"check the hilum", "ok"}));
+  EXPECT_EQ(events, (std::vector<std::string>{"check the hilum", "ok"}));
+  const std::string log = ReadText(dir + "/viewer.log");
+  EXPECT_NE(log.find("\"switched_session\""), std::string::npos) << log;
+  EXPECT_NE(log.find("\"ward-b\""), std::string::npos) << log;
+  ward_a->Signal(SIGTERM);
+  ward_b->Signal(SIGTERM);
+  EXPECT_EQ(ward_a->Wait(seconds(20)), 0) << ReadText(dir + "/a.log");
+  EXPECT_EQ(ward_b->Wait(seconds(20)), 0) << ReadText(dir + "/b.log");
 }
 
 TEST(ViewerProgram, RefusesBadCommandLinesByName) {

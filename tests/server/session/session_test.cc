@@ -34,13 +34,15 @@ ToolCommandInput At(const Eigen::Vector3d& tip, double jaw_opening, uint64_t seq
   return c;
 }
 
-TEST(Session, DefaultSceneHasThreeToolsAndTicksAtTheFemStep) {
+TEST(Session, DefaultSceneHasFourToolsAndTicksAtTheFemStep) {
   const Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
   EXPECT_EQ(session.num_organs(), 1);
-  EXPECT_EQ(session.num_tools(), 3);
+  EXPECT_EQ(session.num_tools(), 4);
   EXPECT_EQ(session.ToolIndex("probe"), 0);
   EXPECT_EQ(session.ToolIndex("grasper"), 1);
   EXPECT_EQ(session.ToolIndex("scalpel"), 2);
+  EXPECT_EQ(session.ToolIndex("laparoscope"), 3);
+  EXPECT_EQ(session.tool(3).shape.kind, contact::ToolKind::kCamera);
   EXPECT_EQ(session.ToolIndex("nope"), -1);
   EXPECT_EQ(session.OrganIndex("kidney424"), 0);
   EXPECT_DOUBLE_EQ(session.dt(), 0.01);
