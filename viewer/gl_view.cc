@@ -265,7 +265,10 @@ void GlView::DrawTools(const SceneReceiver& scene) {
       glEnable(GL_LIGHTING);
     }
     if (tool.grasping) sphere(tool.grasp_anchor, radius * 1.1, kGrasp);
+    // The grasped points and the force are drawn over everything: a force pulling the tool
+    // into the organ would otherwise be hidden inside it.
     glDisable(GL_LIGHTING);
+    glDisable(GL_DEPTH_TEST);
     const auto held = scene.organs().find(tool.held_organ);
     if (!tool.held_nodes.empty() && held != scene.organs().end()) {
       const float* x = held->second.positions();
@@ -301,6 +304,7 @@ void GlView::DrawTools(const SceneReceiver& scene) {
       glEnd();
       glLineWidth(1.0F);
     }
+    glEnable(GL_DEPTH_TEST);
     glEnable(GL_LIGHTING);
   }
 }
