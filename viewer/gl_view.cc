@@ -24,6 +24,7 @@ constexpr float kMetal[3] = {0.70F, 0.72F, 0.78F};    // tools
 constexpr float kContact[3] = {1.00F, 0.85F, 0.10F};  // contact point and normal
 constexpr float kGrasp[3] = {0.20F, 0.85F, 0.30F};    // grasp anchor and grasped points
 constexpr float kForce[3] = {1.00F, 0.50F, 0.10F};    // the rendered force
+constexpr float kStone[3] = {0.85F, 0.78F, 0.55F};    // rigid bodies (calculi: pale sand)
 constexpr double kForceScale = 0.01;                  // [m/N] the arrow's length per newton
 
 void Colour(const float* c) {
@@ -230,6 +231,9 @@ void GlView::DrawTools(const SceneReceiver& scene) {
     gluSphere(q, radius, 16, 12);
     glPopMatrix();
   };
+  for (const auto& [id, body] : scene.rigid_bodies()) {
+    sphere(body.position, body.radius, body.grasped ? kGrasp : kStone);
+  }
   for (const auto& [id, tool] : scene.tools()) {
     if (!tool.has_pose || tool.kind == "camera") continue;
     // The tool frame: the tip at the origin, the shaft along +z (column-major for GL).

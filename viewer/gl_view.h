@@ -78,7 +78,8 @@ class GlView {
     std::vector<uint32_t> outer, inner;  // triangle corner indices by face kind
     std::vector<float> normals;          // 3 × num_nodes
   };
-  // Each tool with a pose: its shaft and tip (metal), its contact point and normal (yellow), its
+  // The rigid bodies (pale sand spheres, green while grasped); each tool with a pose: its shaft
+  // and tip (metal), its contact point and normal (yellow), its
   // grasp anchor (green sphere) and grasped points (green dots), and the force its local force
   // model gives at the tip (an orange arrow from the tip, 1 cm per newton).
   void DrawTools(const SceneReceiver& scene);

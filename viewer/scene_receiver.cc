@@ -57,6 +57,8 @@ SceneReceiver::SceneReceiver(const dds::Participant& participant, const dds::Top
       participant, topics.tool_command, dds::ToolCommandQos(session));
   force_models_ = std::make_unique<dds::Reader<somasim_wire_ForceModel>>(
       participant, topics.force_model, dds::ForceModelQos(session));
+  rigid_reader_ = std::make_unique<dds::Reader<somasim_wire_RigidBodyState>>(
+      participant, topics.rigid_body, dds::RigidBodyQos(session));
 }
 
 SceneReceiver::~SceneReceiver() = default;
@@ -71,6 +73,7 @@ void SceneReceiver::SeeServer(uint64_t id) {
   last_heartbeat_ = std::chrono::steady_clock::now();
   organs_.clear();
   tools_.clear();
+  rigid_bodies_.clear();
   has_session_ = false;
 }
 
@@ -225,6 +228,20 @@ bool SceneReceiver::Poll() {
           return;
         }
         ToolScene& t = it->second;
+        const auto now = std::chrono::steady_clock::now();
+        const std::string station = c.station != nullptr ? c.station : "";
+        if (station != t.station || c.seq < t.rate_seq ||
+            t.rate_start == std::chrono::steady_clock::time_point{}) {
+          t.station = station;  // a new sender: start counting again
+          t.rate_seq = c.seq;
+          t.rate_start = now;
+          t.command_rate_hz = 0.0;
+        } else if (now - t.rate_start >= std::chrono::seconds(1)) {
+          t.command_rate_hz = static_cast<double>(c.seq - t.rate_seq) /
+                              std::chrono::duration<double>(now - t.rate_start).count();
+          t.rate_seq = c.seq;
+          t.rate_start = now;
+        }
         std::copy(std::begin(c.position), std::end(c.position), t.position);
         std::copy(std::begin(c.orientation), std::end(c.orientation), t.orientation);
         t.jaw_closure = std::clamp(c.jaw_closure, 0.0, 1.0);
@@ -234,6 +251,9 @@ bool SceneReceiver::Poll() {
       256);
   force_models_->Take(
       [this](const somasim_wire_ForceModel& m, const dds_sample_info_t&) { OnForceModel(m); });
+  rigid_reader_->Take(
+      [this](const somasim_wire_RigidBodyState& b, const dds_sample_info_t&) { OnRigidBody(b); },
+      256);
   return changed;
 }
 
@@ -267,6 +287,33 @@ void SceneReceiver::OnForceModel(const somasim_wire_ForceModel& m) {
     t.held_nodes.clear();
     t.held_organ.clear();
   }
+}
+
+void SceneReceiver::OnRigidBody(const somasim_wire_RigidBodyState& b) {
+  if (b.format_version != dds::kWireFormatVersion || b.body == nullptr) {
+    ++counters_.wrong_format_version;
+    return;
+  }
+  if (b.server_id != server_id_) return;  // an old server's, or one not yet seen
+  bool ok =
+      std::isfinite(b.radius) && b.radius > 0.0 && b.radius <= 0.2 && std::isfinite(b.sim_time);
+  for (const double v : b.position) ok = ok && std::isfinite(v) && std::abs(v) < 1e3;
+  double q2 = 0.0;
+  for (const double v : b.orientation) {
+    ok = ok && std::isfinite(v);
+    q2 += v * v;
+  }
+  ok = ok && q2 > 0.25 && q2 < 4.0;  // a unit quaternion, give or take rounding and sloppiness
+  if (!ok) {
+    ++counters_.bad_rigid_bodies;
+    return;
+  }
+  RigidBodyScene& r = rigid_bodies_[b.body];
+  r.radius = b.radius;
+  std::copy(std::begin(b.position), std::end(b.position), r.position);
+  std::copy(std::begin(b.orientation), std::end(b.orientation), r.orientation);
+  r.grasped = b.grasped;
+  r.sim_time = b.sim_time;
 }
 
 void SceneReceiver::FindHeldNodes(ToolScene* tool) const {

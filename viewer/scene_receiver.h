@@ -54,6 +54,13 @@ struct ToolScene {
   double orientation[4] = {1.0, 0.0, 0.0, 0.0};  // w x y z, shaft along the tool's +z
   double jaw_closure = 0.0;                      // 0 open .. 1 closed
   std::chrono::steady_clock::time_point last_command{};
+  // The commands' rate [Hz]: the sender's sequence numbers over the last whole second (the
+  // reader keeps only the newest command, so counting samples would undercount), 0 until a
+  // second has passed or when the commands stop; and the sending station.
+  double command_rate_hz = 0.0;
+  std::string station;
+  uint64_t rate_seq = 0;
+  std::chrono::steady_clock::time_point rate_start{};
   bool in_contact = false;
   double contact_point[3] = {};  // [m]
   double normal[3] = {};         // outward, unit
@@ -76,12 +83,22 @@ struct ToolScene {
   Eigen::Vector3d Force() const;
 };
 
+// A rigid body of the session (a kidney stone): a sphere where the server last had it.
+struct RigidBodyScene {
+  double radius = 0.0;                           // [m], in (0, 0.2]
+  double position[3] = {};                       // [m] its centre
+  double orientation[4] = {1.0, 0.0, 0.0, 0.0};  // w x y z
+  bool grasped = false;
+  double sim_time = 0.0;  // [s]
+};
+
 struct ReceiverCounters {
   uint64_t bad_topologies = 0;
   uint64_t bad_frames = 0;
   uint64_t frames_waiting_for_topology = 0;
   uint64_t wrong_format_version = 0;
   uint64_t server_restarts = 0;
+  uint64_t bad_rigid_bodies = 0;  // non-finite poses, radii outside (0, 0.2] m
   uint64_t bad_tool_samples = 0;  // tool commands with non-finite values; unusable force models
 };
 
@@ -101,6 +118,7 @@ class SceneReceiver {
   const std::string& scene_name() const { return scene_name_; }
   const std::map<std::string, OrganScene>& organs() const { return organs_; }
   const std::map<std::string, ToolScene>& tools() const { return tools_; }
+  const std::map<std::string, RigidBodyScene>& rigid_bodies() const { return rigid_bodies_; }
   // Every organ of the session description has a shape.
   bool complete() const;
   // The server's last heartbeat: state (1 starting, 2 running, 3 paused, 4 stopping), session
@@ -120,6 +138,7 @@ class SceneReceiver {
   bool OnFrame(const somasim_wire_MeshFrame& f);
   void SeeServer(uint64_t id);
   void OnForceModel(const somasim_wire_ForceModel& m);
+  void OnRigidBody(const somasim_wire_RigidBodyState& b);
   // The grasped points of `tool` as a grasp begins (ToolScene::held_nodes).
   void FindHeldNodes(ToolScene* tool) const;
 
@@ -131,12 +150,14 @@ class SceneReceiver {
   std::unique_ptr<dds::Reader<somasim_wire_SessionEvent>> events_;
   std::unique_ptr<dds::Reader<somasim_wire_ToolCommand>> tool_commands_;
   std::unique_ptr<dds::Reader<somasim_wire_ForceModel>> force_models_;
+  std::unique_ptr<dds::Reader<somasim_wire_RigidBodyState>> rigid_reader_;
   bool has_session_ = false;
   uint64_t server_id_ = 0;
   std::string scene_name_;
   std::vector<std::string> organ_ids_;  // the session description's organs
   std::map<std::string, OrganScene> organs_;
   std::map<std::string, ToolScene> tools_;
+  std::map<std::string, RigidBodyScene> rigid_bodies_;
   uint32_t server_state_ = 0;
   double sim_time_ = 0.0;
   // The last heartbeat of the current server, or when that server was first heard of.

@@ -128,6 +128,8 @@ struct Viewer {
   int exit_code = kExitOk;
   bool finished = false;
   bool logged_complete = false;  // "scene_complete" is logged once every organ has a shape
+  bool shown_gone = false;       // the server was shown as gone (logged when it changes)
+  uint64_t restarts_seen = 0;    // server restarts logged
   // Frame time (between draws of the complete scene) and frame latency (a server frame's write
   // to the end of the draw that first shows it; both clocks are the host's steady clock, so
   // only meaningful when the server runs on the same host) [ms].
@@ -306,6 +308,15 @@ Hud MakeHud(const Viewer& v) {
                   static_cast<unsigned long long>(c.wrong_format_version),
                   static_cast<unsigned long long>(c.bad_tool_samples));
     hud.lines.emplace_back(line);
+  }
+  const Clock::time_point now = Clock::now();
+  for (const auto& [id, tool] : r.tools()) {
+    // Haptic rates: the stations driving a tool now (commands within the lease).
+    if (tool.has_pose && now - tool.last_command < dds::kLease && tool.command_rate_hz > 0.0) {
+      std::snprintf(line, sizeof line, "haptic %s: %.0f Hz from %s", id.c_str(),
+                    tool.command_rate_hz, tool.station.c_str());
+      hud.lines.emplace_back(line);
+    }
   }
   for (const auto& [id, tool] : r.tools()) {
     const Eigen::Vector3d f = tool.Force();
@@ -629,6 +640,20 @@ void Idle() {
     return;
   }
   v.receiver->Poll();
+  // What the display shows of the server, in the log too: gone (no heartbeat for the lease),
+  // back, restarted (a new server id: its shapes are awaited anew).
+  if (v.receiver->counters().server_restarts != v.restarts_seen) {
+    v.restarts_seen = v.receiver->counters().server_restarts;
+    v.logged_complete = false;
+    v.drawn_frame.clear();
+    Log(LogLevel::kInfo, "server_restarted", {{"server_id", v.receiver->server_id()}});
+  }
+  const bool gone = v.receiver->has_session() && v.receiver->server_gone(Clock::now());
+  if (gone != v.shown_gone && (gone || v.receiver->has_session())) {
+    v.shown_gone = gone;
+    Log(gone ? LogLevel::kWarning : LogLevel::kInfo, gone ? "server_gone" : "server_back",
+        {{"server_id", v.receiver->server_id()}});
+  }
   if (!v.options.drive.empty() && v.driving.empty() && v.receiver->complete()) {
     StartDriving(v, v.options.drive);
   }

@@ -83,6 +83,12 @@ Qos MetricsQos(const std::string& session) {
   return q;
 }
 
+Qos RigidBodyQos(const std::string& session) {
+  Qos q = Base(session);
+  q.BestEffort().Volatile().KeepLast(1);
+  return q;
+}
+
 Topics::Topics(const Participant& participant)
     : session(participant, somasim_wire_SessionInfo_desc, kSessionTopic),
       topology(participant, somasim_wire_OrganTopology_desc, kTopologyTopic),
@@ -92,7 +98,8 @@ Topics::Topics(const Participant& participant)
       event(participant, somasim_wire_SessionEvent_desc, kEventTopic),
       instructor(participant, somasim_wire_InstructorCommand_desc, kInstructorTopic),
       heartbeat(participant, somasim_wire_Heartbeat_desc, kHeartbeatTopic),
-      metrics(participant, somasim_wire_ServerMetrics_desc, kMetricsTopic) {}
+      metrics(participant, somasim_wire_ServerMetrics_desc, kMetricsTopic),
+      rigid_body(participant, somasim_wire_RigidBodyState_desc, kRigidBodyTopic) {}
 
 std::vector<std::string> RunningSessions(const Participant& participant,
                                          std::chrono::milliseconds wait) {

@@ -34,6 +34,7 @@ inline constexpr char kEventTopic[] = "somasim_event";
 inline constexpr char kInstructorTopic[] = "somasim_instructor";
 inline constexpr char kHeartbeatTopic[] = "somasim_heartbeat";
 inline constexpr char kMetricsTopic[] = "somasim_metrics";
+inline constexpr char kRigidBodyTopic[] = "somasim_rigid_body";
 
 // Empty when `name` can be a session (a DDS partition): 1–64 letters, digits, '_' or '-' (no
 // partition wildcards), else what is wrong.
@@ -60,6 +61,9 @@ Qos InstructorQos(const std::string& session);
 Qos HeartbeatQos(const std::string& session);
 // Metrics: best-effort, volatile, keep-last 1.
 Qos MetricsQos(const std::string& session);
+// Rigid bodies' poses: best-effort, volatile, keep-last 1 per body (sent with every frame: only
+// the newest matters).
+Qos RigidBodyQos(const std::string& session);
 
 // Every topic on one participant.
 struct Topics {
@@ -73,6 +77,7 @@ struct Topics {
   Topic<somasim_wire_InstructorCommand> instructor;
   Topic<somasim_wire_Heartbeat> heartbeat;
   Topic<somasim_wire_ServerMetrics> metrics;
+  Topic<somasim_wire_RigidBodyState> rigid_body;
 };
 
 // The sessions running on the participant's domain: the partitions of the servers' heartbeat

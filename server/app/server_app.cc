@@ -185,6 +185,15 @@ class Server {
       const auto& x = session.organ(k).state->positions;
       snapshots_.back()->Write({x.data(), static_cast<size_t>(x.size())}, 0.0);
     }
+    // Rigid bodies: x y z, w x y z, grasped (0/1) each, handed over like the organs' positions.
+    rigid_scratch_.assign(kRigidValues * static_cast<size_t>(session.num_rigid()), 0.0);
+    rigid_snapshot_ = std::make_unique<SnapshotBuffer>(rigid_scratch_.size());
+    for (int32_t k = 0; k < session.num_rigid(); ++k) rigid_ids_.push_back(session.rigid(k).id);
+    SnapshotRigidBodies();
+    if (session.num_rigid() > 0) {
+      rigid_writer_ = std::make_unique<dds::Writer<somasim_wire_RigidBodyState>>(
+          *participant_, topics_->rigid_body, dds::RigidBodyQos(s));
+    }
     tool_stats_.resize(static_cast<size_t>(session.num_tools()));
     force_samples_.resize(static_cast<size_t>(session.num_tools()));
     last_command_.assign(static_cast<size_t>(session.num_tools()), 0);
@@ -391,6 +400,7 @@ class Server {
         snapshots_[static_cast<size_t>(k)]->Write({x.data(), static_cast<size_t>(x.size())},
                                                   session_.time());
       }
+      SnapshotRigidBodies();
       if (t1 - window_start >= std::chrono::seconds(1)) {
         shared_.p50 = window_.Quantile(0.5);
         shared_.p99 = window_.Quantile(0.99);
@@ -513,6 +523,7 @@ class Server {
         }
         matched = readers;
         PublishFrames();
+        PublishRigidBodies();
         next_frame += frame_period;
         if (now - next_frame > 2 * frame_period) {
           ++publish_overruns_;
@@ -542,6 +553,7 @@ class Server {
     // The final shape, as a keyframe so that every subscriber can take it.
     for (auto& encoder : encoders_) encoder->ForceKeyframe();
     PublishFrames();
+    PublishRigidBodies();
   }
 
  public:
@@ -580,6 +592,41 @@ class Server {
       f.positions._buffer = const_cast<float*>(v.positions.data());
       f.positions._length = f.positions._maximum = static_cast<uint32_t>(v.positions.size());
       if (frame_writer_->TryWrite(f) == DDS_RETCODE_OK) ++frames_published_;
+    }
+  }
+
+  // Physics thread (and start-up): the rigid bodies' poses into their snapshot. Allocation-free.
+  void SnapshotRigidBodies() {
+    for (int32_t k = 0; k < session_.num_rigid(); ++k) {
+      const contact::RigidSphere& body = *session_.rigid(k).sphere;
+      double* out = rigid_scratch_.data() + kRigidValues * static_cast<size_t>(k);
+      for (int i = 0; i < 3; ++i) out[i] = body.position()[i];
+      out[3] = body.orientation().w();
+      out[4] = body.orientation().x();
+      out[5] = body.orientation().y();
+      out[6] = body.orientation().z();
+      out[7] = body.grasped() ? 1.0 : 0.0;
+    }
+    if (!rigid_scratch_.empty()) rigid_snapshot_->Write(rigid_scratch_, session_.time());
+  }
+
+  // Publisher thread: each rigid body's newest pose, with the frames.
+  void PublishRigidBodies() {
+    if (!rigid_writer_) return;
+    rigid_snapshot_->Take();
+    const std::span<const double> v = rigid_snapshot_->values();
+    for (size_t k = 0; k < rigid_ids_.size(); ++k) {
+      const double* in = v.data() + kRigidValues * k;
+      somasim_wire_RigidBodyState b{};
+      b.body = dds::CString(rigid_ids_[k]);
+      b.format_version = dds::kWireFormatVersion;
+      b.server_id = server_id_;
+      b.sim_time = rigid_snapshot_->time();
+      b.radius = session_.rigid(static_cast<int32_t>(k)).sphere->radius();  // fixed at start-up
+      for (int i = 0; i < 3; ++i) b.position[i] = in[i];
+      for (int i = 0; i < 4; ++i) b.orientation[i] = in[3 + i];
+      b.grasped = in[7] != 0.0;
+      rigid_writer_->TryWrite(b);
     }
   }
 
@@ -693,6 +740,11 @@ class Server {
   std::unique_ptr<dds::Reader<somasim_wire_ToolCommand>> command_reader_;
   std::unique_ptr<dds::Reader<somasim_wire_InstructorCommand>> instructor_reader_;
   std::vector<std::unique_ptr<SnapshotBuffer>> snapshots_;
+  static constexpr size_t kRigidValues = 8;  // per rigid body: x y z, w x y z, grasped
+  std::unique_ptr<dds::Writer<somasim_wire_RigidBodyState>> rigid_writer_;  // none: no bodies
+  std::unique_ptr<SnapshotBuffer> rigid_snapshot_;
+  std::vector<double> rigid_scratch_;  // physics thread: kRigidValues × bodies
+  std::vector<std::string> rigid_ids_;
   std::vector<std::unique_ptr<wire::FrameEncoder>> encoders_;
   std::vector<std::string> organ_ids_;
   std::vector<ToolStats> tool_stats_;

@@ -7,7 +7,7 @@
 // refused by name; an observe-only viewer has no writer on any topic; a station drives a tool
 // without an arm, by keys and mouse; it lists the running sessions; after a scripted
 // deformation the organ's silhouette changes; resizing, minimising and losing the GL context do
-// not stop it; instructors annotate and switch sessions. Domains 160..163 and 193..199 (193 is
+// not stop it; instructors annotate and switch sessions. Domains 160..165 and 193..199 (193 is
 // also the viewer benchmark's: the two never run together).
 #include <gtest/gtest.h>
 #include <signal.h>
@@ -179,6 +179,104 @@ TEST(SceneReceiver, ShowsGoodSamplesAndDropsAndCountsMalformedOnes) {
   EXPECT_EQ(r.counters().server_restarts, 1u);
   EXPECT_TRUE(r.organs().empty());
   EXPECT_FALSE(r.complete());
+}
+
+// The haptic rate a viewer shows is the sender's command rate: its sequence numbers over a
+// second, not the samples the (keep-last 1) reader happened to take. Here a sender numbers its
+// commands by milliseconds (a 1 kHz loop) but publishes only every 10 ms.
+TEST(SceneReceiver, MeasuresTheHapticRateFromSequenceNumbers) {
+  Samples s;
+  SceneReceiver r(s.participant, s.topics, "rate");
+  dds::Writer<somasim_wire_SessionInfo> session(s.participant, s.topics.session,
+                                                dds::SessionQos("rate"));
+  dds::Writer<somasim_wire_ToolCommand> commands(s.participant, s.topics.tool_command,
+                                                 dds::ToolCommandQos("rate"));
+  somasim_wire_ToolInfo tool{};
+  tool.id = const_cast<char*>("probe");
+  tool.kind = const_cast<char*>("probe");
+  somasim_wire_SessionInfo info{};
+  info.format_version = dds::kWireFormatVersion;
+  info.server_id = 31;
+  info.scene_name = const_cast<char*>("rate");
+  SetSequence(&info.tools, &tool, 1);
+  session.Write(info);
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.has_session(); }));
+  const auto start = std::chrono::steady_clock::now();
+  while (std::chrono::steady_clock::now() - start < milliseconds(2300)) {
+    somasim_wire_ToolCommand c{};
+    c.tool = const_cast<char*>("probe");
+    c.format_version = dds::kWireFormatVersion;
+    c.station = const_cast<char*>("station-7");
+    c.seq = 1 + static_cast<uint64_t>(std::chrono::duration_cast<milliseconds>(
+                                          std::chrono::steady_clock::now() - start)
+                                          .count());
+    c.orientation[0] = 1.0;
+    commands.Write(c);
+    std::this_thread::sleep_for(milliseconds(10));
+    r.Poll();
+  }
+  const ToolScene& t = r.tools().at("probe");
+  EXPECT_EQ(t.station, "station-7");
+  EXPECT_NEAR(t.command_rate_hz, 1000.0, 50.0);
+}
+
+// Rigid bodies (a kidney stone) are shown where the server has them; samples with non-finite
+// poses, radii outside (0, 0.2] m or no unit quaternion are dropped and counted, one from
+// another server is ignored, a new server forgets the old one's bodies.
+TEST(SceneReceiver, ShowsRigidBodiesAndDropsMalformedOnes) {
+  Samples s;
+  SceneReceiver r(s.participant, s.topics, "stone");
+  dds::Writer<somasim_wire_SessionInfo> session(s.participant, s.topics.session,
+                                                dds::SessionQos("stone"));
+  dds::Writer<somasim_wire_RigidBodyState> bodies(s.participant, s.topics.rigid_body,
+                                                  dds::RigidBodyQos("stone"));
+  somasim_wire_SessionInfo info{};
+  info.format_version = dds::kWireFormatVersion;
+  info.server_id = 21;
+  info.scene_name = const_cast<char*>("stone");
+  session.Write(info);
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.has_session(); }));
+  const auto body = [](const char* id, uint64_t server) {
+    somasim_wire_RigidBodyState b{};
+    b.body = const_cast<char*>(id);
+    b.format_version = dds::kWireFormatVersion;
+    b.server_id = server;
+    b.sim_time = 1.5;
+    b.radius = 0.004;
+    b.position[2] = 0.0265;
+    b.orientation[0] = 1.0;
+    return b;
+  };
+  // Malformed, each under its own key (keep-last 1 per body keeps every one).
+  somasim_wire_RigidBodyState nan = body("nan", 21);
+  nan.position[1] = std::numeric_limits<double>::quiet_NaN();
+  somasim_wire_RigidBodyState big = body("big", 21);
+  big.radius = 0.5;
+  somasim_wire_RigidBodyState flat = body("flat", 21);
+  flat.radius = 0.0;
+  somasim_wire_RigidBodyState spin = body("spin", 21);
+  spin.orientation[0] = 0.0;  // not a rotation
+  somasim_wire_RigidBodyState far = body("far", 21);
+  far.position[0] = 1e6;
+  for (const auto& b : {nan, big, flat, spin, far}) bodies.Write(b);
+  bodies.Write(body("elsewhere", 99));  // another server's
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.counters().bad_rigid_bodies == 5; }))
+      << r.counters().bad_rigid_bodies;
+  EXPECT_TRUE(r.rigid_bodies().empty());
+  somasim_wire_RigidBodyState stone = body("stone", 21);
+  stone.grasped = true;
+  bodies.Write(stone);
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.rigid_bodies().count("stone") == 1; }));
+  const RigidBodyScene& shown = r.rigid_bodies().at("stone");
+  EXPECT_EQ(shown.radius, 0.004);
+  EXPECT_EQ(shown.position[2], 0.0265);
+  EXPECT_TRUE(shown.grasped);
+  EXPECT_EQ(r.rigid_bodies().size(), 1u);
+  // A restarted server: the old bodies are gone until the new one publishes its own.
+  info.server_id = 22;
+  session.Write(info);
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.server_id() == 22u; }));
+  EXPECT_TRUE(r.rigid_bodies().empty());
 }
 
 // A server is alive while its heartbeats come and for a lease (500 ms) after the last; one just
@@ -556,6 +654,51 @@ TEST(ViewerProgram, LateViewerShowsExactlyTheServersLastFrame) {
   EXPECT_EQ(0, std::memcmp(shown.data(), expected.data(), shown.size() * sizeof(float)));
 }
 
+bool WaitForLog(const std::string& path, const std::string& event) {
+  for (int i = 0; i < 3000; ++i) {
+    if (ReadText(path).find(event) != std::string::npos) return true;
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  return false;
+}
+
+// A viewer follows a server restart: the server is killed (the viewer shows it gone within
+// its lease and says so), a new server of the same session starts, and the viewer converges
+// to exactly the new server's last frame (its frame number, not the old server's).
+TEST(ViewerProgram, FollowsAServerRestartToTheNewServersShape) {
+  Xvfb x;
+  ASSERT_TRUE(x.ok()) << "Xvfb did not start";
+  const std::string dir = TempDir("restart");
+  auto first = StartProgram("somasim-server", ServerArgs("restart", 165, {}), dir + "/first.log");
+  auto viewer = StartViewer(ViewerArgs("restart", 165, {"--dump-positions", dir + "/viewer"}),
+                            dir + "/viewer.log");
+  ASSERT_TRUE(WaitForLog(dir + "/viewer.log", "scene_complete")) << ReadText(dir + "/viewer.log");
+  std::this_thread::sleep_for(milliseconds(2000));  // frames well beyond the new server's
+  first->Signal(SIGKILL);
+  ASSERT_NE(first->Wait(seconds(20)), 0);
+  ASSERT_TRUE(WaitForLog(dir + "/viewer.log", "\"server_gone\"")) << ReadText(dir + "/viewer.log");
+  auto second =
+      StartProgram("somasim-server", ServerArgs("restart", 165, {"--dump-final", dir + "/server"}),
+                   dir + "/second.log");
+  ASSERT_TRUE(WaitForLog(dir + "/viewer.log", "\"server_restarted\""))
+      << ReadText(dir + "/viewer.log");
+  std::this_thread::sleep_for(milliseconds(1500));
+  second->Signal(SIGTERM);  // its last frame is a keyframe
+  ASSERT_EQ(second->Wait(seconds(20)), 0) << ReadText(dir + "/second.log");
+  std::this_thread::sleep_for(milliseconds(1500));
+  viewer->Signal(SIGTERM);
+  ASSERT_EQ(viewer->Wait(seconds(20)), 0) << ReadText(dir + "/viewer.log");
+  const std::string log = ReadText(dir + "/viewer.log");
+  EXPECT_NE(log.find("\"server_back\""), std::string::npos) << log;
+  const std::string server_frame = ReadText(dir + "/server/kidney424.frame");
+  ASSERT_FALSE(server_frame.empty());
+  EXPECT_EQ(ReadText(dir + "/viewer/kidney424.frame"), server_frame) << log;
+  const std::vector<float> expected = ReadFloats(dir + "/server/kidney424.f32");
+  const std::vector<float> shown = ReadFloats(dir + "/viewer/kidney424.f32");
+  ASSERT_EQ(shown.size(), expected.size());
+  EXPECT_EQ(0, std::memcmp(shown.data(), expected.data(), shown.size() * sizeof(float)));
+}
+
 // Readers on every topic of a session, in the test's own participant.
 struct AllTopics {
   AllTopics(uint32_t id, const std::string& session)
@@ -570,14 +713,15 @@ struct AllTopics {
         event(participant, topics.event, dds::EventQos(session)),
         instructor(participant, topics.instructor, dds::InstructorQos(session)),
         heartbeat(participant, topics.heartbeat, dds::HeartbeatQos(session)),
-        metrics(participant, topics.metrics, dds::MetricsQos(session)) {}
+        metrics(participant, topics.metrics, dds::MetricsQos(session)),
+        rigid_body(participant, topics.rigid_body, dds::RigidBodyQos(session)) {}
   // Writers matched on each topic, in Topics' order.
   std::vector<int32_t> Writers() {
     return {session_info.Status().matched_writers, topology.Status().matched_writers,
             frame.Status().matched_writers,        tool_command.Status().matched_writers,
             force_model.Status().matched_writers,  event.Status().matched_writers,
             instructor.Status().matched_writers,   heartbeat.Status().matched_writers,
-            metrics.Status().matched_writers};
+            metrics.Status().matched_writers,      rigid_body.Status().matched_writers};
   }
   dds::Domain domain;
   dds::Participant participant;
@@ -591,19 +735,12 @@ struct AllTopics {
   dds::Reader<somasim_wire_InstructorCommand> instructor;
   dds::Reader<somasim_wire_Heartbeat> heartbeat;
   dds::Reader<somasim_wire_ServerMetrics> metrics;
+  dds::Reader<somasim_wire_RigidBodyState> rigid_body;
 };
-
-bool WaitForLog(const std::string& path, const std::string& event) {
-  for (int i = 0; i < 3000; ++i) {
-    if (ReadText(path).find(event) != std::string::npos) return true;
-    std::this_thread::sleep_for(milliseconds(10));
-  }
-  return false;
-}
 
 // An instructor's observe-only viewer, showing the session, has no writer on any topic: every
 // topic has exactly the server's writers, and nothing arrives on the two the server never
-// writes (tool and instructor commands).
+// writes (tool and instructor commands). (A reader on each of the ten topics.)
 TEST(ViewerProgram, ObserveOnlyPublishesNothing) {
   Xvfb x;
   ASSERT_TRUE(x.ok()) << "Xvfb did not start";
@@ -611,8 +748,9 @@ TEST(ViewerProgram, ObserveOnlyPublishesNothing) {
   AllTopics all(194, "obs");
   auto server = StartProgram("somasim-server", ServerArgs("obs", 194, {"--duration", "60"}),
                              dir + "/server.log");
-  // The server's writers: everything but the tool and instructor commands.
-  const std::vector<int32_t> server_only = {1, 1, 1, 0, 1, 1, 0, 1, 1};
+  // The server's writers: everything but the tool and instructor commands (and rigid bodies: the
+  // kidney's scene has none).
+  const std::vector<int32_t> server_only = {1, 1, 1, 0, 1, 1, 0, 1, 1, 0};
   for (int i = 0; i < 1000 && all.Writers() != server_only; ++i) {
     std::this_thread::sleep_for(milliseconds(10));
   }
@@ -780,11 +918,12 @@ TEST(ViewerProgram, SilhouetteChangesAfterAScriptedDeformation) {
   uint32_t node = 0;
   for (uint32_t i = 1; i < now.size() / 3; ++i) {
     const auto at = [&](uint32_t k) {
-      return Eigen::Vector3d(now[3 * k], now[3 * k + 1], now[3 * k + 2]).dot(right);
+      return Eigen::Vector3f(now[3 * k], now[3 * k + 1], now[3 * k + 2]).cast<double>().dot(right);
     };
     if (at(i) > at(node)) node = i;
   }
-  const Eigen::Vector3d start(now[3 * node], now[3 * node + 1], now[3 * node + 2]);
+  const Eigen::Vector3d start =
+      Eigen::Vector3f(now[3 * node], now[3 * node + 1], now[3 * node + 2]).cast<double>();
   uint64_t seq = 0;
   const auto send = [&](const Eigen::Vector3d& tip, double jaw) {
     somasim_wire_ToolCommand c =
@@ -801,7 +940,8 @@ TEST(ViewerProgram, SilhouetteChangesAfterAScriptedDeformation) {
   for (int i = 0; i < 100; ++i) send(end, 1.0);  // settles
   const auto moved = [&] {
     const std::span<const float> p = client.organs()["kidney424"].decoder->positions();
-    return (Eigen::Vector3d(p[3 * node], p[3 * node + 1], p[3 * node + 2]) - start).dot(right);
+    return (Eigen::Vector3f(p[3 * node], p[3 * node + 1], p[3 * node + 2]).cast<double>() - start)
+        .dot(right);
   };
   EXPECT_GT(moved(), 0.015) << "the grasped node did not follow the jaws";
   auto viewer = shot("after");
@@ -825,6 +965,34 @@ TEST(ViewerProgram, SilhouetteChangesAfterAScriptedDeformation) {
   EXPECT_GT(same, 0.99);
   EXPECT_LT(changed, 0.98);
   EXPECT_GT(changed, 0.5);  // the same organ in the same view
+}
+
+// A scene with a rigid body: the two-organ scene's 4 mm stone on the kidney shows as a pale sand
+// sphere in the screenshot, near where the server has it.
+TEST(ViewerProgram, ShowsTheScenesRigidBody) {
+  Xvfb x;
+  ASSERT_TRUE(x.ok()) << "Xvfb did not start";
+  const std::string dir = TempDir("stone");
+  std::vector<std::string> args = ServerArgs("stone", 164, {"--duration", "60"});
+  args[1] = std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/server_two_organs.scene.txtpb";
+  auto server = StartProgram("somasim-server", args, dir + "/server.log");
+  auto viewer = StartViewer(
+      ViewerArgs("stone", 164,
+                 {"--screenshot", dir + "/stone.png", "--after-frames", "10", "--timeout", "60"}),
+      dir + "/viewer.log");
+  ASSERT_EQ(viewer->Wait(seconds(90)), 0) << ReadText(dir + "/viewer.log");
+  server->Signal(SIGTERM);
+  EXPECT_EQ(server->Wait(seconds(20)), 0) << ReadText(dir + "/server.log");
+  const Png png = DecodePng(ReadText(dir + "/stone.png"));
+  ASSERT_EQ(png.width, 320);
+  size_t stone = 0;
+  for (size_t i = 0; i < png.rgb.size() / 3; ++i) {
+    const int r = png.rgb[3 * i], g = png.rgb[3 * i + 1], b = png.rgb[3 * i + 2];
+    stone += static_cast<size_t>(r > 90 && g > 80 && b < g - 15 && std::abs(r - g) < 40);
+  }
+  EXPECT_GT(stone, 15u) << "pale sand pixels";
+  EXPECT_LT(stone, 320u * 240u / 20u);
+  std::printf("stone pixels: %zu\n", stone);
 }
 
 // Writes a viewer script into `dir` and returns its path.
@@ -900,7 +1068,7 @@ TEST(ViewerProgram, LooksThroughTheLaparoscope) {
   const std::span<const float> p = client.organs()["kidney424"].decoder->positions();
   Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e9), hi = -lo;
   for (size_t i = 0; i < p.size() / 3; ++i) {
-    const Eigen::Vector3d v(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
+    const Eigen::Vector3d v = Eigen::Vector3f(p[3 * i], p[3 * i + 1], p[3 * i + 2]).cast<double>();
     lo = lo.cwiseMin(v);
     hi = hi.cwiseMax(v);
   }
