@@ -107,7 +107,7 @@ std::vector<ViewerEvent> ParseViewerScript(const std::string& text, const std::s
       constexpr std::pair<const char*, int> kControlKeys[] = {
           {"enter", 13}, {"escape", 27}, {"backspace", 8}, {"space", ' '}};
       if (args[0].size() == 1 && args[0][0] > ' ' && args[0][0] < 127) {
-        e.key = args[0][0];
+        e.key = static_cast<unsigned char>(args[0][0]);
       } else if (const auto* c = std::find_if(std::begin(kControlKeys), std::end(kControlKeys),
                                               [&](const auto& k) { return args[0] == k.first; });
                  c != std::end(kControlKeys)) {

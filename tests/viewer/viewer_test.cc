@@ -303,8 +303,8 @@ TEST(SceneReceiver, ShowsAServerGoneOnlyWhenItsHeartbeatStopsForALease) {
   beat.format_version = dds::kWireFormatVersion;
   beat.server_id = 11;
   beat.state = 2;
-  for (int i = 0; i < 8; ++i) {  // 0.8 s of heartbeats every 100 ms: alive throughout
-    beat.seq = static_cast<uint64_t>(i + 1);
+  for (uint64_t i = 0; i < 8; ++i) {  // 0.8 s of heartbeats every 100 ms: alive throughout
+    beat.seq = i + 1;
     heartbeat.Write(beat);
     std::this_thread::sleep_for(milliseconds(100));
     r.Poll();
@@ -997,7 +997,7 @@ TEST(ViewerProgram, ShowsTheScenesRigidBody) {
 
 // Writes a viewer script into `dir` and returns its path.
 std::string WriteScript(const std::string& dir, const std::string& body) {
-  const std::string path = dir + "/script.txt";
+  std::string path = dir + "/script.txt";
   std::ofstream(path) << "somasim-viewer-script 1\n" << body;
   return path;
 }
