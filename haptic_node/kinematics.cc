@@ -1,6 +1,5 @@
 #include "haptic_node/kinematics.h"
 
-#include <google/protobuf/io/tokenizer.h>
 #include <google/protobuf/io/zero_copy_stream_impl_lite.h>
 #include <google/protobuf/text_format.h>
 
@@ -8,27 +7,12 @@
 #include <fstream>
 #include <sstream>
 
+#include "common/scene/first_error.h"
 #include "idl/arm.pb.h"
 
 namespace somasim::haptic {
 
 namespace {
-
-class FirstError final : public google::protobuf::io::ErrorCollector {
- public:
-  void AddError(int line, google::protobuf::io::ColumnNumber column,
-                const std::string& message) override {
-    if (line_ >= 0) return;
-    line_ = line + 1;
-    message_ = message + " (column " + std::to_string(column + 1) + ")";
-  }
-  int line() const { return line_; }
-  const std::string& message() const { return message_; }
-
- private:
-  int line_ = -1;
-  std::string message_;
-};
 
 Eigen::Vector3d V(const arm::Vec3& v) { return {v.x(), v.y(), v.z()}; }
 
@@ -44,7 +28,7 @@ Eigen::Matrix3d RotationFromRpy(const Eigen::Vector3d& rpy) {
 ArmKinematics ArmKinematics::FromText(const std::string& text, const std::string& file) {
   arm::Arm config;
   google::protobuf::TextFormat::Parser parser;
-  FirstError errors;
+  scene::FirstError errors("not an arm configuration in protobuf text format");
   parser.RecordErrorsTo(&errors);
   google::protobuf::io::ArrayInputStream input(text.data(), static_cast<int>(text.size()));
   if (text.size() > (1u << 20)) throw ArmConfigError(file + ": larger than 1 MiB: not an arm");

@@ -50,10 +50,10 @@
 
 /* Arm -> node: what the driver reads from the arm. 96 bytes. */
 typedef struct somasim_arm_state {
-  uint64_t driver_time_ns; /* the driver's monotonic clock [ns], for logs only */
-  uint64_t heartbeat;      /* +1 per driver cycle (1 kHz or faster) */
-  uint32_t buttons;        /* SOMASIM_ARM_BUTTON_* */
-  uint32_t num_joints;     /* valid entries of joint[]: the header's num_joints */
+  uint64_t driver_time_ns;              /* the driver's monotonic clock [ns], for logs only */
+  uint64_t heartbeat;                   /* +1 per driver cycle (1 kHz or faster) */
+  uint32_t buttons;                     /* SOMASIM_ARM_BUTTON_* */
+  uint32_t num_joints;                  /* valid entries of joint[]: the header's num_joints */
   double joint[SOMASIM_ARM_MAX_JOINTS]; /* [rad] revolute or [m] prismatic, after the driver's
                                            encoder scaling; homing offsets are the node's */
   double gripper;                       /* 0 open .. 1 closed */
@@ -61,10 +61,10 @@ typedef struct somasim_arm_state {
 
 /* Node -> arm: what the driver applies. 120 bytes. */
 typedef struct somasim_arm_command {
-  uint64_t node_time_ns; /* the node's monotonic clock [ns], for logs only */
-  uint64_t heartbeat;    /* +1 per node tick (1 kHz) */
-  uint32_t enable;       /* 0: the motors must produce no torque */
-  uint32_t num_joints;   /* valid entries of torque[] */
+  uint64_t node_time_ns;                 /* the node's monotonic clock [ns], for logs only */
+  uint64_t heartbeat;                    /* +1 per node tick (1 kHz) */
+  uint32_t enable;                       /* 0: the motors must produce no torque */
+  uint32_t num_joints;                   /* valid entries of torque[] */
   double torque[SOMASIM_ARM_MAX_JOINTS]; /* [N m] revolute or [N] prismatic: J^T force */
   double force[3]; /* [N] the Cartesian force in the arm's base frame they render (for logs) */
   double reserved; /* 0 */
@@ -82,13 +82,13 @@ typedef struct somasim_arm_command_record {
 } somasim_arm_command_record_t;
 
 typedef struct somasim_arm_block {
-  uint32_t magic;        /* SOMASIM_ARM_MAGIC, stored last by the creator */
-  uint32_t abi_version;  /* SOMASIM_ARM_ABI_VERSION */
-  uint32_t block_size;   /* sizeof(somasim_arm_block_t) = 320 */
-  uint32_t state_size;   /* sizeof(somasim_arm_state_t) = 96 */
-  uint32_t command_size; /* sizeof(somasim_arm_command_t) = 120 */
-  uint32_t num_joints;   /* the arm's joints, 1 .. SOMASIM_ARM_MAX_JOINTS */
-  uint8_t reserved[40];  /* 0 */
+  uint32_t magic;                       /* SOMASIM_ARM_MAGIC, stored last by the creator */
+  uint32_t abi_version;                 /* SOMASIM_ARM_ABI_VERSION */
+  uint32_t block_size;                  /* sizeof(somasim_arm_block_t) = 320 */
+  uint32_t state_size;                  /* sizeof(somasim_arm_state_t) = 96 */
+  uint32_t command_size;                /* sizeof(somasim_arm_command_t) = 120 */
+  uint32_t num_joints;                  /* the arm's joints, 1 .. SOMASIM_ARM_MAX_JOINTS */
+  uint8_t reserved[40];                 /* 0 */
   somasim_arm_state_record_t state;     /* offset 64 */
   somasim_arm_command_record_t command; /* offset 192 */
 } somasim_arm_block_t;

@@ -178,7 +178,8 @@ std::unique_ptr<ArmBlock> ArmBlock::Open(std::string_view name, int wait_ms) {
   const auto bytes = static_cast<uint64_t>(st.st_size);
   if (bytes < sizeof(somasim_arm_block_t)) {
     close(fd);
-    throw ArmShmError(object + ": " + arm::HeaderError(somasim_arm_block_t{}, bytes));  // names the size
+    throw ArmShmError(object + ": " +
+                      arm::HeaderError(somasim_arm_block_t{}, bytes));  // names the size
   }
   void* p = mmap(nullptr, bytes, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
   close(fd);

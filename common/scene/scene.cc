@@ -13,6 +13,7 @@
 
 #include "common/mesh/geometry.h"
 #include "common/mesh_gen/builtin_organs.h"
+#include "common/scene/first_error.h"
 
 namespace somasim::scene {
 namespace {
@@ -29,23 +30,6 @@ std::string Format(const std::string& file, int line, const std::string& field,
   if (!field.empty()) out += field + ": ";
   return out + message;
 }
-
-// Collects the parser's first syntax error (line and column are 0-based).
-class FirstError final : public google::protobuf::io::ErrorCollector {
- public:
-  void AddError(int line, google::protobuf::io::ColumnNumber column,
-                const std::string& message) override {
-    if (line_ >= 0) return;
-    line_ = line + 1;
-    message_ = message + " (column " + std::to_string(column + 1) + ")";
-  }
-  int line() const { return line_; }
-  const std::string& message() const { return message_; }
-
- private:
-  int line_ = -1;
-  std::string message_ = "not a scene in protobuf text format";
-};
 
 // A position in the scene being checked: the message, its field path and its location tree,
 // so that a fault names the field and its line (or the enclosing value's line when the field
@@ -434,7 +418,7 @@ SceneError SceneLines::Error(const std::string& field, const std::string& messag
 Scene ParseScene(std::string_view text, const std::string& file_name, SceneLines* lines) {
   Scene scene;
   TextFormat::Parser parser;
-  FirstError errors;
+  FirstError errors("not a scene in protobuf text format");
   TextFormat::ParseInfoTree tree;
   parser.RecordErrorsTo(&errors);
   parser.WriteLocationsTo(&tree);

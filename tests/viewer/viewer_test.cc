@@ -880,6 +880,17 @@ size_t OrganPixels(const Png& png) {
   return n;
 }
 
+// Polls `client` until the server's kidney has a shape (60 s at most).
+bool HasKidneyShape(testing::SessionClient* client) {
+  return client->PollUntil(
+      [client] {
+        const auto it = client->organs().find("kidney424");
+        return it != client->organs().end() && it->second.decoder &&
+               it->second.decoder->has_shape();
+      },
+      seconds(60));
+}
+
 // The organ's silhouette changes after a scripted deformation: a viewer's screenshot before,
 // then the test grasps the kidney at its outermost node across the view and pulls it 3 cm
 // sideways (tool commands at 100 Hz, as a haptic node sends them), and a second viewer's
@@ -893,13 +904,7 @@ TEST(ViewerProgram, SilhouetteChangesAfterAScriptedDeformation) {
   auto server = StartProgram("somasim-server", ServerArgs("sil", 160, {"--duration", "120"}),
                              dir + "/server.log");
   testing::SessionClient client(160, "sil");
-  ASSERT_TRUE(client.PollUntil(
-      [&] {
-        const auto it = client.organs().find("kidney424");
-        return it != client.organs().end() && it->second.decoder && it->second.decoder->has_shape();
-      },
-      seconds(60)))
-      << ReadText(dir + "/server.log");
+  ASSERT_TRUE(HasKidneyShape(&client)) << ReadText(dir + "/server.log");
   const auto shot = [&](const std::string& name) {
     auto viewer = StartViewer(ViewerArgs("sil", 160,
                                          {"--screenshot", dir + "/" + name + ".png",
@@ -1058,13 +1063,7 @@ TEST(ViewerProgram, LooksThroughTheLaparoscope) {
   auto server = StartProgram("somasim-server", ServerArgs("scope", 163, {"--duration", "120"}),
                              dir + "/server.log");
   testing::SessionClient client(163, "scope");
-  ASSERT_TRUE(client.PollUntil(
-      [&] {
-        const auto it = client.organs().find("kidney424");
-        return it != client.organs().end() && it->second.decoder && it->second.decoder->has_shape();
-      },
-      seconds(60)))
-      << ReadText(dir + "/server.log");
+  ASSERT_TRUE(HasKidneyShape(&client)) << ReadText(dir + "/server.log");
   const std::span<const float> p = client.organs()["kidney424"].decoder->positions();
   Eigen::Vector3d lo = Eigen::Vector3d::Constant(1e9), hi = -lo;
   for (size_t i = 0; i < p.size() / 3; ++i) {
