@@ -170,6 +170,10 @@ ArmPose ArmKinematics::ToScene(const ArmPose& arm) const {
   return scene;
 }
 
+Eigen::Vector3d ArmKinematics::PositionToArm(const Eigen::Vector3d& scene_position) const {
+  return scene_rotation_.transpose() * (scene_position - scene_origin_) / scale_;
+}
+
 Eigen::Vector3d ArmKinematics::VelocityToScene(const Eigen::Vector3d& arm_velocity) const {
   return scale_ * (scene_rotation_ * arm_velocity);
 }

@@ -48,6 +48,9 @@ class ArmKinematics {
   double force_scale() const { return force_scale_; }  // arm N per scene N
   double scale() const { return scale_; }              // scene m per arm m
   double max_torque(int joint) const { return joints_[static_cast<size_t>(joint)].max_torque; }
+  double home_offset(int joint) const { return joints_[static_cast<size_t>(joint)].home_offset; }
+  double joint_min(int joint) const { return joints_[static_cast<size_t>(joint)].min; }
+  double joint_max(int joint) const { return joints_[static_cast<size_t>(joint)].max; }
 
   // q = encoder - home_offset, for the first num_joints() values.
   JointVector JointsFromEncoders(const double* encoders) const;
@@ -57,6 +60,8 @@ class ArmKinematics {
   ArmPose Forward(const JointVector& q, Jacobian* jacobian = nullptr) const;
   // The arm's pose in the scene: position scene_origin + scale R p, rotation R · rotation.
   ArmPose ToScene(const ArmPose& arm) const;
+  // A scene position [m] in the arm's frame (the inverse of ToScene's position).
+  Eigen::Vector3d PositionToArm(const Eigen::Vector3d& scene_position) const;
   // A velocity [m/s] in the arm's frame, in the scene's.
   Eigen::Vector3d VelocityToScene(const Eigen::Vector3d& arm_velocity) const;
   // The force the arm renders for a scene force [N]: force_scale Rᵀ F, in the arm's frame.

@@ -1,0 +1,184 @@
+// somasim-arm-sim --arm NAME --config FILE --script FILE: emulates an arm's driver on the arm's
+// shared memory (common/arm_shm/arm_abi.h) for tests and for labs without their arm yet. Its arm
+// (haptic_node/arm_sim.h) follows a scripted hand (a mock script, haptic_node/mock_script.h: the
+// positions are the scene's, mapped back into the arm's frame by the configuration; jaw is the
+// gripper; buttons are the arm's buttons) under the node's torques, with the watchdog a real
+// driver must have (the node's heartbeat still for 10 ms: zero torque). Writes its state every
+// tick (2 kHz by default); checks the block's header every 100 ms (a corrupted header: zero
+// torque, exit 8). Exit codes: 0 done, 2 usage, 3 bad script, 4 I/O, 8 the block is unusable,
+// 70 bug.
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstdio>
+#include <exception>
+#include <fstream>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <thread>
+
+#include "common/app/log.h"
+#include "common/app/signals.h"
+#include "common/arm_shm/arm_shm.h"
+#include "haptic_node/arm_sim.h"
+#include "haptic_node/kinematics.h"
+#include "haptic_node/mock_script.h"
+
+namespace somasim::haptic {
+namespace {
+
+using app::Log;
+using app::LogLevel;
+using Clock = std::chrono::steady_clock;
+
+constexpr int kExitOk = 0, kExitUsage = 2, kExitBadScript = 3, kExitIo = 4, kExitBlock = 8;
+
+int64_t Ns(Clock::time_point t) {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(t.time_since_epoch()).count();
+}
+
+int Main(int argc, char** argv) {
+  app::SetLogProcess("arm-sim");
+  std::string arm_name, config_path, script_path, torques_path, report_path;
+  double rate = 2000.0, duration = 0.0;
+  CLI::App cli{
+      "somasim-arm-sim: emulates a haptic arm's driver on /somasim-arm-NAME (tests, and labs "
+      "before their arm arrives).\nExit codes: 0 done, 2 usage, 3 bad script, 4 I/O, 8 the "
+      "shared block is unusable, 70 bug."};
+  cli.add_option("--arm", arm_name, "the arm's name: /somasim-arm-NAME")->required();
+  cli.add_option("--config", config_path, "the arm's configuration (*.arm.txtpb)")->required();
+  cli.add_option("--script", script_path,
+                 "the hand's trajectory: a mock script (scene positions, jaw = gripper, "
+                 "buttons)")
+      ->required();
+  cli.add_option("--rate", rate, "driver cycles per second")
+      ->check(CLI::Range(100.0, 20000.0))
+      ->capture_default_str();
+  cli.add_option("--duration", duration, "seconds to run (0: the script's duration + 1 s)")
+      ->check(CLI::Range(0.0, 86400.0));
+  cli.add_option("--torques", torques_path,
+                 "CSV per cycle: monotonic ns, node heartbeat, watchdog tripped, applied torque "
+                 "norm [N m], handle x y z [m] (arm frame)");
+  cli.add_option("--report", report_path, "JSON report at the end");
+  try {
+    cli.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return cli.exit(e) == 0 ? kExitOk : kExitUsage;
+  }
+  if (const std::string bad = arm::ArmNameError(arm_name); !bad.empty()) {
+    std::fprintf(stderr, "somasim-arm-sim: --arm \"%s\" %s\n", arm_name.c_str(), bad.c_str());
+    return kExitUsage;
+  }
+  std::unique_ptr<ArmKinematics> kinematics;
+  try {
+    kinematics = std::make_unique<ArmKinematics>(ArmKinematics::Load(config_path));
+  } catch (const ArmConfigError& e) {
+    std::fprintf(stderr, "somasim-arm-sim: --config %s\n", e.what());
+    return kExitUsage;
+  }
+  std::unique_ptr<MockScript> script;
+  try {
+    script = std::make_unique<MockScript>(MockScript::Load(script_path));
+  } catch (const ScriptError& e) {
+    std::fprintf(stderr, "somasim-arm-sim: --script %s\n", e.what());
+    return kExitBadScript;
+  }
+  std::unique_ptr<arm::ArmBlock> block;
+  try {
+    block = arm::ArmBlock::Create(arm_name, static_cast<uint32_t>(kinematics->num_joints()));
+  } catch (const arm::ArmShmError& e) {
+    std::fprintf(stderr, "somasim-arm-sim: %s\n", e.what());
+    return kExitBlock;
+  }
+  std::ofstream torques;
+  if (!torques_path.empty()) {
+    torques.open(torques_path);
+    if (!torques) {
+      std::fprintf(stderr, "somasim-arm-sim: cannot write %s\n", torques_path.c_str());
+      return kExitIo;
+    }
+    torques << "monotonic_ns,node_heartbeat,tripped,torque_norm,x,y,z\n";
+  }
+  app::InstallStopSignals();
+  if (duration == 0.0) duration = script->duration() + 1.0;
+  ArmSimulator sim(*kinematics, ArmSimSettings{});
+  const auto period =
+      std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(1.0 / rate));
+  const double dt = 1.0 / rate;
+  const Clock::time_point start = Clock::now();
+  Clock::time_point next = start;
+  uint64_t heartbeat = 0, cycles = 0, torn = 0, trips = 0, header_checks = 0;
+  bool was_tripped = true;
+  int exit_code = kExitOk;
+  somasim_arm_command_t command{};
+  Log(LogLevel::kInfo, "running",
+      {{"arm", arm_name}, {"joints", kinematics->num_joints()}, {"rate_hz", rate}});
+  while (!app::StopRequested()) {
+    const Clock::time_point now = Clock::now();
+    const double t = std::chrono::duration<double>(now - start).count();
+    if (t > duration) break;
+    // The header, every 100 ms: a corrupted block stops the arm.
+    if (cycles % static_cast<uint64_t>(rate / 10.0) == 0) {
+      ++header_checks;
+      if (const std::string bad = block->HeaderError(); !bad.empty()) {
+        Log(LogLevel::kError, "block_unusable", {{"reason", bad}, {"monotonic_ns", Ns(now)}});
+        exit_code = kExitBlock;
+        break;
+      }
+    }
+    const arm::ReadResult read = arm::ReadCommand(block->block().command, &command, 4);
+    if (read == arm::ReadResult::kTorn) ++torn;
+    const ScriptSample hand = script->At(t);
+    sim.Step(t, dt, read == arm::ReadResult::kOk ? &command : nullptr,
+             kinematics->PositionToArm(hand.position));
+    if (sim.watchdog_tripped() && !was_tripped) {
+      ++trips;
+      Log(LogLevel::kWarning, "watchdog", {{"monotonic_ns", Ns(now)}, {"t", t}});
+    }
+    was_tripped = sim.watchdog_tripped();
+    arm::WriteState(&block->block().state,
+                    sim.State(++heartbeat, static_cast<uint64_t>(Ns(now)), hand.buttons, hand.jaw));
+    if (torques) {
+      const ArmPose pose = sim.Pose();
+      torques << Ns(now) << ',' << command.heartbeat << ',' << (sim.watchdog_tripped() ? 1 : 0)
+              << ',' << sim.applied_torque().norm() << ',' << pose.position.x() << ','
+              << pose.position.y() << ',' << pose.position.z() << '\n';
+    }
+    ++cycles;
+    next += period;
+    const Clock::time_point after = Clock::now();
+    if (after > next + period) {
+      next = after;  // late: start afresh rather than burst
+    } else {
+      std::this_thread::sleep_until(next);
+    }
+  }
+  // Stopping: zero torque is the arm's own business; its last state stays for the node to see
+  // its heartbeat stop.
+  if (torques) torques.flush();
+  Log(LogLevel::kInfo, "stopped",
+      {{"cycles", cycles},
+       {"torn_reads", torn},
+       {"watchdog_trips", trips},
+       {"header_checks", header_checks}});
+  if (!report_path.empty()) {
+    nlohmann::ordered_json r = {{"arm", arm_name},
+                                {"cycles", cycles},
+                                {"torn_reads", torn},
+                                {"watchdog_trips", trips},
+                                {"exit_code", exit_code}};
+    std::ofstream(report_path) << r.dump(2) << "\n";
+  }
+  return exit_code;
+}
+
+}  // namespace
+}  // namespace somasim::haptic
+
+int main(int argc, char** argv) {
+  try {
+    return somasim::haptic::Main(argc, argv);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "somasim-arm-sim: internal error: %s\n", e.what());
+    return 70;
+  }
+}
