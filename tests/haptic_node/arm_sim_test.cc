@@ -175,6 +175,18 @@ int64_t NowNs() {
       .count();
 }
 
+// The block somasim-arm-sim makes, once it has made it (3 s at most; nullptr if it never does).
+std::unique_ptr<arm::ArmBlock> AttachWhenMade(const std::string& name) {
+  for (int i = 0; i < 300; ++i) {
+    try {
+      return arm::ArmBlock::Open(name, 100);
+    } catch (const arm::ArmShmError&) {
+      std::this_thread::sleep_for(milliseconds(10));
+    }
+  }
+  return nullptr;
+}
+
 // This test is the node: it commands torque for a second through the block, then stops dead (a
 // node killed with -9 writes nothing more). The simulated driver applies the torque while the
 // heartbeat moves and none from 20 ms after the node's last write on (watchdog 10 ms + a cycle
@@ -189,14 +201,7 @@ TEST(ArmSimProgram, TorqueGoesToZeroWithin20MillisecondsOfTheNodesLastWrite) {
                                    {"--arm", name, "--config", kArm, "--script", dir + "/hold.txt",
                                     "--duration", "4", "--torques", dir + "/torques.csv"},
                                    dir + "/sim.log");
-  std::unique_ptr<arm::ArmBlock> block;
-  for (int i = 0; i < 300 && !block; ++i) {
-    try {
-      block = arm::ArmBlock::Open(name, 100);
-    } catch (const arm::ArmShmError&) {
-      std::this_thread::sleep_for(milliseconds(10));
-    }
-  }
+  std::unique_ptr<arm::ArmBlock> block = AttachWhenMade(name);
   ASSERT_TRUE(block) << testing::ReadText(dir + "/sim.log");
   somasim_arm_state_t state{};
   for (int i = 0; i < 300 && arm::ReadState(block->block().state, &state) != arm::ReadResult::kOk;
@@ -205,7 +210,7 @@ TEST(ArmSimProgram, TorqueGoesToZeroWithin20MillisecondsOfTheNodesLastWrite) {
   }
   EXPECT_EQ(arm::StateError(state, 6), "");
   auto next = std::chrono::steady_clock::now();
-  int64_t stopped = 0;  // the node's last write
+  int64_t stopped = 0;                             // the node's last write
   for (uint64_t beat = 1; beat <= 1000; ++beat) {  // 1 s at 1 kHz
     arm::WriteCommand(&block->block().command, Command(beat, 0.2));
     stopped = NowNs();
@@ -245,14 +250,7 @@ TEST(ArmSimProgram, StopsOnACorruptedHeaderAndRefusesBadCommandLines) {
       "somasim-arm-sim",
       {"--arm", name, "--config", kArm, "--script", dir + "/hold.txt", "--duration", "20"},
       dir + "/sim.log");
-  std::unique_ptr<arm::ArmBlock> block;
-  for (int i = 0; i < 300 && !block; ++i) {
-    try {
-      block = arm::ArmBlock::Open(name, 100);
-    } catch (const arm::ArmShmError&) {
-      std::this_thread::sleep_for(milliseconds(10));
-    }
-  }
+  std::unique_ptr<arm::ArmBlock> block = AttachWhenMade(name);
   ASSERT_TRUE(block);
   block->block().abi_version = 7;
   EXPECT_EQ(sim->Wait(seconds(10)), 8) << testing::ReadText(dir + "/sim.log");
