@@ -9,6 +9,7 @@
 // 70 bug.
 #include <CLI/CLI.hpp>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <exception>
 #include <fstream>
@@ -17,6 +18,8 @@
 #include <thread>
 
 #include "common/app/log.h"
+#include "common/app/realtime.h"
+#include "common/app/scheduling.h"
 #include "common/app/signals.h"
 #include "common/arm_shm/arm_shm.h"
 #include "haptic_node/arm_sim.h"
@@ -57,8 +60,14 @@ int Main(int argc, char** argv) {
       ->check(CLI::Range(0.0, 86400.0));
   cli.add_option("--torques", torques_path,
                  "CSV per cycle: monotonic ns, node heartbeat, watchdog tripped, applied torque "
-                 "norm [N m], handle x y z [m] (arm frame)");
+                 "norm [N m], handle x y z [m] (arm frame), the force the applied torques "
+                 "render [N] (the node's Cartesian force; 0 while tripped or disabled)");
   cli.add_option("--report", report_path, "JSON report at the end");
+  int rt_priority = 79;
+  cli.add_option("--rt-priority", rt_priority,
+                 "SCHED_FIFO priority of the driver's cycle, as a real driver's (0: do not ask)")
+      ->check(CLI::Range(0, 99))
+      ->capture_default_str();
   try {
     cli.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -96,10 +105,20 @@ int Main(int argc, char** argv) {
       std::fprintf(stderr, "somasim-arm-sim: cannot write %s\n", torques_path.c_str());
       return kExitIo;
     }
-    torques << "monotonic_ns,node_heartbeat,tripped,torque_norm,x,y,z\n";
+    torques << "monotonic_ns,node_heartbeat,tripped,torque_norm,x,y,z,force_n\n";
   }
   app::InstallStopSignals();
   if (duration == 0.0) duration = script->duration() + 1.0;
+  // A driver runs its cycle in real time; here the emulation asks for the same (and says when
+  // it is refused: then on the fair scheduler with a short slice).
+  if (rt_priority > 0) {
+    const app::RealtimeResult rt = app::SetFifoScheduling(rt_priority);
+    Log(rt.applied ? LogLevel::kInfo : LogLevel::kWarning,
+        rt.applied ? "realtime" : "realtime_refused", {{"detail", rt.detail}});
+    if (!rt.applied) app::SetSchedulerSlice(app::kWireSlice);
+  } else {
+    app::SetSchedulerSlice(app::kWireSlice);
+  }
   ArmSimulator sim(*kinematics, ArmSimSettings{});
   const auto period =
       std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(1.0 / rate));
@@ -141,7 +160,13 @@ int Main(int argc, char** argv) {
       const ArmPose pose = sim.Pose();
       torques << Ns(now) << ',' << command.heartbeat << ',' << (sim.watchdog_tripped() ? 1 : 0)
               << ',' << sim.applied_torque().norm() << ',' << pose.position.x() << ','
-              << pose.position.y() << ',' << pose.position.z() << '\n';
+              << pose.position.y() << ',' << pose.position.z() << ','
+              << (sim.watchdog_tripped() || command.enable == 0
+                      ? 0.0
+                      : std::sqrt(command.force[0] * command.force[0] +
+                                  command.force[1] * command.force[1] +
+                                  command.force[2] * command.force[2]))
+              << '\n';
     }
     ++cycles;
     next += period;

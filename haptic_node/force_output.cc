@@ -91,7 +91,10 @@ Eigen::Vector3d ForceOutput::Tick(const ForceInput& in) {
       authority_ = 0.0;
     }
   }
-  if (engaged_) authority_ = std::min(1.0, authority_ + s_.dt / s_.engage_ramp);
+  // Without a usable model (none yet, or stale to zero) the authority rests at zero, so force
+  // comes back gradually when models resume (a server paused and continued: no jump).
+  if (scale == 0.0) authority_ = 0.0;
+  if (engaged_ && scale > 0.0) authority_ = std::min(1.0, authority_ + s_.dt / s_.engage_ramp);
   target *= engaged_ ? authority_ : 0.0;
   // 5. The arm's limit (and, from a stale model, never more than last tick's: the hand may push
   // deeper into a model that no longer knows where the tissue is); 6. the change per tick.

@@ -14,6 +14,8 @@
 //  4. Engagement: on start, after the emergency stop and after a fault clears, force engages
 //     only once the (staleness-scaled) desired force has stayed below `engage_below` for
 //     `engage_ticks` ticks; the authority then rises linearly from 0 to 1 over `engage_ramp`.
+//     Without a usable model (none yet, or one stale to zero) the authority rests at 0 and rises
+//     again over `engage_ramp` when models resume: a paused server's return never jolts.
 //  5. The magnitude is clamped to `max_force` (the arm's limit), keeping the direction.
 //  6. The change per tick is limited to `max_step` (a jump in the model never jolts the hand).
 //  7. Passivity observer (Hannaford & Ryu 2002): the energy the environment has absorbed,

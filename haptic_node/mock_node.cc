@@ -14,12 +14,17 @@
 #include "common/app/log.h"
 #include "common/app/scheduling.h"
 #include "common/app/signals.h"
+#include "common/arm_shm/arm_shm.h"
 #include "common/dds/topics.h"
 #include "haptic_node/mock_script.h"
+#include "haptic_node/shm_node.h"
 #include "server/contact/force_model_wire.h"
 
 #ifndef SOMASIM_VERSION
 #define SOMASIM_VERSION "0.0.0"
+#endif
+#ifndef SOMASIM_SOURCE_DIR
+#define SOMASIM_SOURCE_DIR "."
 #endif
 
 namespace somasim::haptic {
@@ -253,14 +258,31 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
 int HapticMain(int argc, char** argv) {
   app::SetLogProcess("haptic");
   MockNodeOptions options;
+  ShmNodeOptions shm;
   CLI::App cli{
-      "somasim-haptic: the 1 kHz haptic node. --device mock plays a scripted trajectory\n"
+      "somasim-haptic: the 1 kHz haptic node. --device shm drives an arm through its shared\n"
+      "memory (docs/haptic_node.md); --device mock plays a scripted trajectory\n"
       "(docs/mock_scripts.md). Exit codes: 0 done, 2 usage, 3 bad script, 4 I/O, 5 DDS,\n"
-      "6 no server, 7 server lost, 70 bug."};
+      "6 no server, 7 server lost, 8 the arm's shared memory is unusable, 70 bug."};
   cli.set_version_flag("--version", std::string("somasim-haptic ") + SOMASIM_VERSION);
-  cli.add_option("--device", options.device, "mock (shm arrives with the haptic-node issue)")
+  cli.add_option("--device", options.device, "shm (an arm) or mock (a script)")
+      ->check(CLI::IsMember({"shm", "mock"}))
       ->capture_default_str();
-  cli.add_option("--script", options.script, "the mock device's script");
+  cli.add_option("--script", options.script, "mock: the script");
+  cli.add_option("--arm", shm.arm, "shm: the arm's name (/somasim-arm-NAME)");
+  cli.add_option("--arm-config", shm.arm_config,
+                 "shm: the arm's configuration (*.arm.txtpb; default haptic_node/arms/NAME)");
+  cli.add_option("--tool", shm.tool, "shm: the scene's tool the arm drives")->capture_default_str();
+  cli.add_option("--duration", shm.duration, "shm: seconds to run (0: until SIGINT/SIGTERM)")
+      ->check(CLI::Range(0.0, 1e7))
+      ->capture_default_str();
+  cli.add_option("--rt-priority", shm.rt_priority,
+                 "shm: SCHED_FIFO priority of the loop (0: do not ask)")
+      ->check(CLI::Range(0, 99))
+      ->capture_default_str();
+  cli.add_option("--spin-us", shm.spin_us, "shm: microseconds spun before each deadline")
+      ->check(CLI::Range(0, 500))
+      ->capture_default_str();
   cli.add_option("--session", options.session, "the session's name (its DDS partition)")
       ->capture_default_str();
   cli.add_option("--station", options.station, "this station's name, for logs")
@@ -280,20 +302,54 @@ int HapticMain(int argc, char** argv) {
   } catch (const CLI::ParseError& e) {
     return cli.exit(e) == 0 ? kExitOk : kExitUsage;
   }
-  if (options.device != "mock") {
-    std::fprintf(stderr,
-                 "somasim-haptic: --device %s: only \"mock\" exists yet (the arm through shared "
-                 "memory arrives with the haptic-node issue)\n",
-                 options.device.c_str());
-    return kExitUsage;
-  }
-  if (options.script.empty()) {
-    std::fprintf(stderr, "somasim-haptic: --device mock needs --script FILE\n");
-    return kExitUsage;
-  }
   if (const std::string bad = dds::SessionNameError(options.session); !bad.empty()) {
     std::fprintf(stderr, "somasim-haptic: --session \"%s\" %s\n", options.session.c_str(),
                  bad.c_str());
+    return kExitUsage;
+  }
+  if (options.device == "shm") {
+    if (!options.script.empty()) {
+      std::fprintf(stderr, "somasim-haptic: --script is for --device mock\n");
+      return kExitUsage;
+    }
+    if (shm.arm.empty()) {
+      std::fprintf(stderr, "somasim-haptic: --device shm needs --arm NAME\n");
+      return kExitUsage;
+    }
+    if (const std::string bad = arm::ArmNameError(shm.arm); !bad.empty()) {
+      std::fprintf(stderr, "somasim-haptic: --arm \"%s\" %s\n", shm.arm.c_str(), bad.c_str());
+      return kExitUsage;
+    }
+    if (shm.arm_config.empty()) {
+      shm.arm_config =
+          std::string(SOMASIM_SOURCE_DIR) + "/haptic_node/arms/" + shm.arm + ".arm.txtpb";
+    }
+    if (shm.tool.empty()) {
+      std::fprintf(stderr, "somasim-haptic: --tool must name the scene's tool\n");
+      return kExitUsage;
+    }
+    shm.session = options.session;
+    shm.station = options.station;
+    shm.domain = options.domain;
+    shm.rate = options.rate;
+    shm.report = options.report;
+    app::InstallStopSignals();
+    std::string config;
+    try {
+      config = dds::ReadDdsConfig(options.dds_config);
+    } catch (const std::runtime_error& e) {
+      std::fprintf(stderr, "somasim-haptic: %s\n", e.what());
+      return kExitIo;
+    }
+    try {
+      return RunShmNode(shm, config);
+    } catch (const dds::DdsError& e) {
+      std::fprintf(stderr, "somasim-haptic: DDS: %s\n", e.what());
+      return kExitDds;
+    }
+  }
+  if (options.script.empty()) {
+    std::fprintf(stderr, "somasim-haptic: --device mock needs --script FILE\n");
     return kExitUsage;
   }
   app::InstallStopSignals();

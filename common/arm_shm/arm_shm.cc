@@ -102,12 +102,24 @@ std::string HeaderError(const somasim_arm_block_t& b, uint64_t mapped_bytes) {
   return "";
 }
 
+const char* HeaderProblem(const somasim_arm_block_t& b, uint64_t mapped_bytes) {
+  if (mapped_bytes < sizeof(somasim_arm_block_t)) return "the block is too small";
+  if (__atomic_load_n(&b.magic, __ATOMIC_ACQUIRE) != SOMASIM_ARM_MAGIC) return "bad magic";
+  if (b.abi_version != SOMASIM_ARM_ABI_VERSION) return "another abi_version";
+  if (b.block_size != sizeof(somasim_arm_block_t)) return "another block_size";
+  if (b.state_size != sizeof(somasim_arm_state_t)) return "another state_size";
+  if (b.command_size != sizeof(somasim_arm_command_t)) return "another command_size";
+  if (b.num_joints < 1 || b.num_joints > SOMASIM_ARM_MAX_JOINTS) return "num_joints out of range";
+  return nullptr;
+}
+
 ArmBlock::ArmBlock(std::string object, somasim_arm_block_t* block, uint64_t bytes)
     : object_(std::move(object)), block_(block), bytes_(bytes) {}
 
 ArmBlock::~ArmBlock() { munmap(block_, bytes_); }
 
 std::string ArmBlock::HeaderError() const { return arm::HeaderError(*block_, bytes_); }
+const char* ArmBlock::HeaderProblem() const { return arm::HeaderProblem(*block_, bytes_); }
 
 std::unique_ptr<ArmBlock> ArmBlock::Create(std::string_view name, uint32_t num_joints) {
   if (const std::string bad = ArmNameError(name); !bad.empty()) {
@@ -218,6 +230,20 @@ ReadResult ReadState(const somasim_arm_state_record_t& record, somasim_arm_state
 ReadResult ReadCommand(const somasim_arm_command_record_t& record, somasim_arm_command_t* out,
                        int attempts) {
   return SeqlockRead(&record.sequence, &record.data, out, attempts);
+}
+
+const char* StateProblem(const somasim_arm_state_t& s, uint32_t num_joints) {
+  if (s.num_joints != num_joints) return "another num_joints";
+  for (uint32_t k = 0; k < num_joints; ++k) {
+    if (!std::isfinite(s.joint[k]) || std::abs(s.joint[k]) >= 1e3) return "a bad joint value";
+  }
+  if (!std::isfinite(s.gripper) || s.gripper < -1e-6 || s.gripper > 1.0 + 1e-6) {
+    return "a bad gripper value";
+  }
+  constexpr uint32_t kKnown =
+      SOMASIM_ARM_BUTTON_CLUTCH | SOMASIM_ARM_BUTTON_EMERGENCY_STOP | SOMASIM_ARM_BUTTON_CUT;
+  if ((s.buttons & ~kKnown) != 0) return "unknown button bits";
+  return nullptr;
 }
 
 std::string StateError(const somasim_arm_state_t& s, uint32_t num_joints) {

@@ -30,6 +30,10 @@ std::string ShmObjectName(std::string_view name);
 // is wrong, naming the field and both values.
 std::string HeaderError(const somasim_arm_block_t& block, uint64_t mapped_bytes);
 
+// The same checks for the 1 kHz loop, allocation-free: nullptr when the header can be used, else
+// which check failed (a static string; HeaderError gives the values).
+const char* HeaderProblem(const somasim_arm_block_t& block, uint64_t mapped_bytes);
+
 // One mapping of an arm's block.
 class ArmBlock {
  public:
@@ -52,6 +56,7 @@ class ArmBlock {
   uint32_t num_joints() const { return block_->num_joints; }
   // The header checked again (the other side, or anything else, may have overwritten it).
   std::string HeaderError() const;
+  const char* HeaderProblem() const;  // allocation-free, for the loop
   const std::string& object_name() const { return object_; }
 
  private:
@@ -79,5 +84,7 @@ ReadResult ReadCommand(const somasim_arm_command_record_t& record, somasim_arm_c
 // matches, every joint value and the gripper finite (|q| < 1e3), the gripper within [0, 1]
 // (± 1e-6), no unknown button bits; else what is wrong.
 std::string StateError(const somasim_arm_state_t& state, uint32_t num_joints);
+// The same checks, allocation-free: nullptr when usable, else which check failed (static).
+const char* StateProblem(const somasim_arm_state_t& state, uint32_t num_joints);
 
 }  // namespace somasim::arm

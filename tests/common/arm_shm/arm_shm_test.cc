@@ -133,11 +133,13 @@ TEST(ArmShm, RefusesACorruptedHeaderNamingTheField) {
     const somasim_arm_block_t saved = node->block();
     c.corrupt(&node->block());
     EXPECT_NE(node->HeaderError().find(c.expected), std::string::npos) << node->HeaderError();
+    EXPECT_NE(node->HeaderProblem(), nullptr) << c.expected;  // the loop's check agrees
     const std::string e = ErrorOf([&] { ArmBlock::Open(n.name(), 0); });
     EXPECT_NE(e.find(c.expected), std::string::npos) << e;
     EXPECT_NE(e.find("/somasim-arm-" + n.name()), std::string::npos) << e;
     node->block() = saved;
     EXPECT_EQ(node->HeaderError(), "");
+    EXPECT_EQ(node->HeaderProblem(), nullptr);
   }
   // A node finding a corrupted block says how to clear it.
   node->block().magic = 0;
@@ -227,7 +229,9 @@ TEST(ArmShm, StateErrorNamesWhatIsWrong) {
   const auto with = [&](auto change) {
     somasim_arm_state_t t = s;
     change(&t);
-    return StateError(t, 3);
+    const std::string error = StateError(t, 3);
+    EXPECT_EQ(error.empty(), StateProblem(t, 3) == nullptr) << error;  // the loop's check agrees
+    return error;
   };
   EXPECT_NE(with([](auto* t) { t->num_joints = 4; }).find("num_joints is 4, the arm has 3"),
             std::string::npos);
