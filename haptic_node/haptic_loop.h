@@ -4,7 +4,8 @@
 // lock, no allocation (tested).
 //
 // Each tick:
-//  1. The device: the block's header (the caller's check), the state read (a torn read), the
+//  1. The device: the block's header (the caller's check), the state read (torn reads: one is
+//     a driver preempted mid-write, a tick without news; torn for `arm_timeout`, a fault), the
 //     state's values (arm_shm StateProblem) and the driver's heartbeat (still for `arm_timeout`
 //     while running, over as many of the loop's own ticks: a node held up by its host does not
 //     blame the arm). Until the driver's heartbeat is first seen moving the loop waits for the
@@ -126,6 +127,7 @@ class HapticLoop {
   uint64_t last_heartbeat_ = 0;
   int64_t heartbeat_changed_ns_ = 0;
   int64_t still_ticks_ = 0;        // our ticks since the driver's heartbeat last moved
+  int64_t torn_streak_ = 0;  // consecutive torn reads
   int64_t healthy_since_ns_ = -1;  // the device usable since (< 0: not now)
   bool have_pose_ = false;
   Eigen::Vector3d last_arm_position_ = Eigen::Vector3d::Zero();

@@ -5,6 +5,7 @@
 #include <time.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdio>
@@ -250,6 +251,7 @@ int RunShmNode(const ShmNodeOptions& o, const std::string& dds_config) {
   uint64_t sequence = 0;
   uint64_t models_received = 0, models_rejected = 0, models_taken = 0;
   uint64_t write_failures = 0;
+  double max_force = 0.0;  // [N] at the arm, as the loop reports it (sampled here)
   PackedForceModel held{};
   bool holding = false;
   somasim_wire_ToolCommand c{};
@@ -317,6 +319,7 @@ int RunShmNode(const ShmNodeOptions& o, const std::string& dds_config) {
     }
     // The loop's state and counters.
     LoopStatus& s = shared->status;
+    max_force = std::max(max_force, s.force.load(std::memory_order_relaxed));
     if (!fifo_logged && s.ticks.load(std::memory_order_relaxed) > 0) {
       fifo_logged = true;
       if (timing->fifo.applied) {
@@ -378,6 +381,7 @@ int RunShmNode(const ShmNodeOptions& o, const std::string& dds_config) {
                       {"p999", lt.lateness.Quantile(0.999)},
                       {"max", lt.lateness.max_us()}};
   r["periods_over_2ms"] = lt.periods_over_2ms;
+  r["max_force_n"] = max_force;
   r["tool_commands_sent"] = sequence;
   r["tool_command_write_failures"] = write_failures;
   r["force_models_received"] = models_received;

@@ -2,7 +2,9 @@
 // somasim-server on the built-in liver and a mock haptic node playing the demo script
 // (palpate, grasp and pull, incision) — waits for both, then prints a summary and writes a
 // JSON report (steps, step-time percentiles, frames, forces, contact time, events). The session
-// ends at --duration of session time or when the script ends, whichever comes first.
+// ends at --duration of session time or when the script ends, whichever comes first. With
+// --arm the session is driven as a station with an arm is: somasim-haptic --device shm and the
+// emulated arm somasim-arm-sim, whose hand plays the script (palpate.txt by default).
 // Exit code: 0 when both processes finished cleanly, else the first failure's.
 #include <unistd.h>
 
@@ -12,6 +14,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
@@ -53,10 +56,20 @@ int Demo(int argc, char** argv) {
   cli.add_option("--out", out_dir, "folder for logs, forces and the report")->capture_default_str();
   cli.add_option("--dds-config", dds_config, "Cyclone DDS configuration")->capture_default_str();
   cli.add_option("--domain", domain, "DDS domain id")->check(CLI::Range(0, 232));
+  bool arm = false;
+  std::string arm_config = std::string(SOMASIM_SOURCE_DIR) + "/haptic_node/arms/seed002.arm.txtpb";
+  cli.add_flag("--arm", arm,
+               "drive the session with an arm: somasim-haptic --device shm and the emulated arm "
+               "somasim-arm-sim, whose hand plays the script (default palpate.txt)");
+  cli.add_option("--arm-config", arm_config, "with --arm: the arm's configuration")
+      ->capture_default_str();
   try {
     cli.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return cli.exit(e) == 0 ? 0 : 2;
+  }
+  if (arm && cli.get_option("--script")->count() == 0) {
+    script = std::string(SOMASIM_SOURCE_DIR) + "/haptic_node/scripts/palpate.txt";
   }
   somasim::app::InstallStopSignals();
   const fs::path out(out_dir);
@@ -80,25 +93,72 @@ int Demo(int argc, char** argv) {
        "--duration", dur, "--domain", std::to_string(domain), "--dds-config", dds_config,
        "--report", (out / "server_report.json").string(), "--verbose"},
       (out / "server.log").string());
-  somasim::app::ChildProcess haptic(
-      {(bin / "somasim-haptic").string(), "--device", "mock", "--script", script, "--session",
-       session, "--domain", std::to_string(domain), "--dds-config", dds_config, "--wait-server",
-       "120", "--forces", (out / "forces.csv").string(), "--report",
-       (out / "haptic_report.json").string()},
-      (out / "haptic.log").string());
-  // Wait for both; SIGINT/SIGTERM passes on to them.
+  const std::string arm_name = "demo-" + std::to_string(getpid());
+  std::vector<std::string> haptic_args = {(bin / "somasim-haptic").string(),
+                                          "--session",
+                                          session,
+                                          "--domain",
+                                          std::to_string(domain),
+                                          "--dds-config",
+                                          dds_config,
+                                          "--report",
+                                          (out / "haptic_report.json").string()};
+  if (arm) {
+    for (const char* a : {"--device", "shm", "--tool", "probe", "--arm"}) haptic_args.push_back(a);
+    haptic_args.push_back(arm_name);
+    haptic_args.push_back("--arm-config");
+    haptic_args.push_back(arm_config);
+  } else {
+    for (const std::string& a :
+         {std::string("--device"), std::string("mock"), std::string("--script"), script,
+          std::string("--wait-server"), std::string("120"), std::string("--forces"),
+          (out / "forces.csv").string()}) {
+      haptic_args.push_back(a);
+    }
+  }
+  somasim::app::ChildProcess haptic(haptic_args, (out / "haptic.log").string());
+  // With --arm: the emulated arm, its hand playing the script once the node has found the
+  // server; the session ends when the hand's script does.
+  std::unique_ptr<somasim::app::ChildProcess> arm_sim;
+  const auto start_arm = [&] {
+    arm_sim = std::make_unique<somasim::app::ChildProcess>(
+        std::vector<std::string>{(bin / "somasim-arm-sim").string(), "--arm", arm_name, "--config",
+                                 arm_config, "--script", script, "--torques",
+                                 (out / "arm.csv").string(), "--report",
+                                 (out / "arm_report.json").string()},
+        (out / "arm.log").string());
+  };
+  // Wait for them; SIGINT/SIGTERM passes on to them.
   const auto limit = std::chrono::seconds(static_cast<int>(10 * duration) + 300);
   int server_rc = -1;
   int haptic_rc = -1;
-  while (server_rc < 0 || haptic_rc < 0) {
+  int arm_rc = arm ? -1 : 0;
+  while (server_rc < 0 || haptic_rc < 0 || arm_rc < 0) {
     if (somasim::app::StopRequested()) {
       server.Signal(SIGTERM);
       haptic.Signal(SIGTERM);
+      if (arm_sim) arm_sim->Signal(SIGTERM);
+      if (!arm_sim) arm_rc = arm_rc < 0 ? 0 : arm_rc;
     }
     if (std::chrono::steady_clock::now() - t0 > limit) {
       std::fprintf(stderr, "somasim-demo: the session did not finish within %lld s\n",
                    static_cast<long long>(limit.count()));
       return 70;
+    }
+    if (arm && !arm_sim && arm_rc < 0) {
+      std::ifstream log(out / "haptic.log");
+      bool found = false;
+      for (std::string line; !found && std::getline(log, line);) {
+        found = line.find("server_found") != std::string::npos;
+      }
+      if (found) start_arm();
+    }
+    if (arm_sim && arm_rc < 0) {
+      arm_rc = arm_sim->Wait(std::chrono::milliseconds(50));
+      if (arm_rc >= 0) {  // the hand's script is done: so is the session
+        haptic.Signal(SIGTERM);
+        server.Signal(SIGTERM);
+      }
     }
     if (server_rc < 0) server_rc = server.Wait(std::chrono::milliseconds(50));
     if (haptic_rc < 0) {
@@ -108,7 +168,10 @@ int Demo(int argc, char** argv) {
         // time has not reached --duration yet).
         server.Signal(SIGTERM);
       }
+      if (haptic_rc >= 0 && arm_sim && arm_rc < 0) arm_sim->Signal(SIGTERM);
+      if (haptic_rc >= 0 && !arm_sim) arm_rc = arm_rc < 0 ? 0 : arm_rc;
     }
+    if (server_rc >= 0 && haptic_rc < 0) haptic.Signal(SIGTERM);
   }
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const nlohmann::json s = ReadJson(out / "server_report.json");
@@ -140,10 +203,24 @@ int Demo(int argc, char** argv) {
               num(s, "force_models_published"));
   std::printf("tool commands    %.0f received, %.0f rejected\n", num(s, "tool_commands_received"),
               num(s, "tool_commands_rejected"));
-  std::printf("haptic node      %.0f ticks at %.0f Hz; %.0f force models received\n",
-              num(h, "ticks"), num(h, "rate_hz"), num(h, "force_models_received"));
-  std::printf("force            max %.2f N, mean in contact %.2f N, contact time %.2f s\n",
-              num(h, "max_force_n"), num(h, "mean_force_in_contact_n"), num(h, "contact_time_s"));
+  if (arm) {
+    const nlohmann::json loop = h.contains("loop") ? h["loop"] : nlohmann::json::object();
+    const nlohmann::json period =
+        h.contains("period_error_us") ? h["period_error_us"] : nlohmann::json::object();
+    std::printf(
+        "haptic node      %.0f ticks with the arm; period error p99 %.0f us, max %.0f us;"
+        " %.0f over 2 ms; %s\n",
+        num(loop, "ticks"), num(period, "p99"), num(period, "max"), num(h, "periods_over_2ms"),
+        h.contains("realtime") && h["realtime"].value("sched_fifo", false) ? "SCHED_FIFO"
+                                                                           : "no SCHED_FIFO");
+    std::printf("force            max %.2f N at the arm; %.0f force models taken; %.0f faults\n",
+                num(h, "max_force_n"), num(h, "force_models_taken"), num(loop, "faults"));
+  } else {
+    std::printf("haptic node      %.0f ticks at %.0f Hz; %.0f force models received\n",
+                num(h, "ticks"), num(h, "rate_hz"), num(h, "force_models_received"));
+    std::printf("force            max %.2f N, mean in contact %.2f N, contact time %.2f s\n",
+                num(h, "max_force_n"), num(h, "mean_force_in_contact_n"), num(h, "contact_time_s"));
+  }
   if (s.contains("events") && s["events"].is_object()) {
     std::printf("events          ");
     for (const auto& [name, count] : s["events"].items()) {
@@ -158,9 +235,14 @@ int Demo(int argc, char** argv) {
     return server_rc;
   }
   if (haptic_rc != 0) {
-    std::fprintf(stderr, "somasim-demo: the mock haptic node exited with %d (see %s)\n", haptic_rc,
+    std::fprintf(stderr, "somasim-demo: the haptic node exited with %d (see %s)\n", haptic_rc,
                  (out / "haptic.log").c_str());
     return haptic_rc;
+  }
+  if (arm_rc != 0) {
+    std::fprintf(stderr, "somasim-demo: the emulated arm exited with %d (see %s)\n", arm_rc,
+                 (out / "arm.log").c_str());
+    return arm_rc;
   }
   return 0;
 }
