@@ -159,10 +159,8 @@ const somasim_arm_command_t& HapticLoop::Tick(const HapticLoopInput& in) {
     }
     last_arm_position_ = arm_pose.position;
     // 3. The clutch.
-    if (clutch && !clutched_) {
-      ++counters_.clutch_ticks;
-    } else if (clutch) {
-      ++counters_.clutch_ticks;
+    if (clutch) {
+      ++counters_.clutch_ticks;  // the tool stays where it is
     } else {
       if (clutched_) {  // released: the tool follows from where it was left
         offset_position_ = tool_position_ - scene_pose.position;

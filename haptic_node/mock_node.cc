@@ -16,6 +16,7 @@
 #include "common/app/signals.h"
 #include "common/arm_shm/arm_shm.h"
 #include "common/dds/topics.h"
+#include "haptic_node/force_output.h"
 #include "haptic_node/mock_script.h"
 #include "haptic_node/shm_node.h"
 #include "server/contact/force_model_wire.h"
@@ -34,8 +35,7 @@ using Clock = std::chrono::steady_clock;
 using app::Log;
 using app::LogLevel;
 
-constexpr auto kFresh = std::chrono::milliseconds(10);  // SPEC §7: older models ramp down
-constexpr auto kRamp = std::chrono::milliseconds(50);   // ... to zero 60 ms after the model
+constexpr uint32_t kEmergencyStopButton = 2;  // idl/tool.idl ToolCommand.buttons bit 1
 
 double Seconds(Clock::duration d) { return std::chrono::duration<double>(d).count(); }
 int64_t MonotonicNs(Clock::time_point t) {
@@ -101,6 +101,9 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
   }
 
   std::vector<ToolModel> tool_models(script.tools().size());
+  ForceOutputSettings output_settings;
+  output_settings.dt = 1.0 / options.rate;
+  ForceOutput output(output_settings);
   const std::vector<std::string>& tools = script.tools();
   const auto period = std::chrono::duration_cast<Clock::duration>(
       std::chrono::duration<double>(1.0 / options.rate));
@@ -111,7 +114,6 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
   uint64_t ticks = 0;
   uint64_t models_received = 0;
   uint64_t models_rejected = 0;
-  uint64_t stale_ticks = 0;
   uint64_t late_ticks = 0;
   double max_force = 0.0;
   double force_sum = 0.0;
@@ -186,20 +188,21 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
     bool grasping = false;
     double age_ms = -1.0;
     const ToolModel& tm = tool_models[static_cast<size_t>(s.tool)];
+    ForceInput fi;
+    fi.velocity = velocity;
+    fi.emergency_stop = (s.buttons & kEmergencyStopButton) != 0;
     if (tm.valid) {
       const Clock::duration age = now - tm.received;
       age_ms = 1e3 * Seconds(age);
-      double scale = 1.0;
-      if (age > kFresh) {
-        ++stale_ticks;
-        scale = std::max(0.0, 1.0 - Seconds(age - kFresh) / Seconds(kRamp));
-      }
       const contact::ForceSample fs =
           contact::EvaluateLocalForceModel(tm.model, s.position, velocity);
-      f = scale * fs.force;
+      fi.desired = fs.force;
+      fi.model_age = Seconds(age);
       in_contact = tm.model.in_contact && fs.in_contact;
       grasping = tm.model.grasping;
     }
+    // The one output stage every rendered force passes (force_output.h), as with an arm.
+    f = output.Tick(fi);
     const double magnitude = f.norm();
     max_force = std::max(max_force, magnitude);
     if (in_contact || grasping) {
@@ -234,7 +237,11 @@ int Run(const MockNodeOptions& options, const MockScript& script, const std::str
   r["commands_sent"] = sequence;
   r["force_models_received"] = models_received;
   r["force_models_rejected"] = models_rejected;
-  r["stale_ticks"] = stale_ticks;
+  r["stale_ticks"] = output.counters().stale_ticks;
+  r["clamped_ticks"] = output.counters().clamped_ticks;
+  r["rate_limited_ticks"] = output.counters().rate_limited_ticks;
+  r["damped_ticks"] = output.counters().damped_ticks;
+  r["faults"] = output.counters().faults;
   r["max_force_n"] = max_force;
   r["mean_force_in_contact_n"] = contact_time > 0.0 ? force_sum / contact_time : 0.0;
   r["contact_time_s"] = contact_time;

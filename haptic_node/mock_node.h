@@ -1,10 +1,10 @@
 // somasim-haptic with the mock device (`--device mock --script FILE`): the mock haptic node of
 // automated tests and the demo. It plays a scripted tool trajectory (mock_script.h) as tool
 // commands at 1 kHz, evaluates the newest local force model it has received for the driven tool
-// at the scripted position (the force the arm would render; SPEC §7's staleness rule: a model
-// older than 10 ms ramps the force to zero, reaching zero 60 ms after the model), logs the
+// at the scripted position and passes it through the same output stage as an arm's force
+// (force_output.h: SPEC §7's staleness rule, engagement, clamp, rate limit, passivity), logs the
 // forces, and watches the server's heartbeat: a server silent for the lease (500 ms) is lost.
-// The real arm through shared memory arrives with the haptic-node issue.
+// The arm through shared memory: shm_node.h.
 #pragma once
 
 #include <cstdint>

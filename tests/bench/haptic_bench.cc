@@ -4,10 +4,11 @@
 //
 // BM_HapticShmHandoff: one command written into a real /somasim-arm-* block and read back
 // (a whole seqlock record each way; same thread, so the cost, not the cross-core latency).
-// BM_HapticTickCompute: one tick from the arm's state to its torques on the seed-002 arm: read
-// the state, encoders to joints, forward kinematics with the Jacobian, into the scene, the local
-// force model at the tool tip, the output stage, back into the arm's frame, Jᵀ F, write the
-// command.
+// BM_HapticTickCompute: one tick of the node's loop (haptic_loop.h) from the arm's state to its
+// torques on the seed-002 arm, exactly as the loop runs it: check the header, read the state,
+// read the newest model from its slot, HapticLoop::Tick (device checks, encoders to joints,
+// forward kinematics with the Jacobian, into the scene, the local force model at the tool tip,
+// the output stage, back into the arm's frame, Jᵀ F), write the command. A probe pressing 2 mm.
 #include <benchmark/benchmark.h>
 #include <unistd.h>
 
@@ -17,8 +18,9 @@
 #include <vector>
 
 #include "common/arm_shm/arm_shm.h"
-#include "haptic_node/force_output.h"
+#include "haptic_node/haptic_loop.h"
 #include "haptic_node/kinematics.h"
+#include "haptic_node/latest_slot.h"
 #include "server/contact/local_force_model.h"
 
 namespace somasim::haptic {
@@ -70,51 +72,66 @@ void BM_HapticTickCompute(benchmark::State& state) {
   const std::string name = "bench-tick-" + std::to_string(getpid());
   arm::ArmBlock::Unlink(name);
   auto block = arm::ArmBlock::Create(name, 6);
-  ForceOutput output(ForceOutputSettings{});
-  for (int i = 0; i < 600; ++i) output.Tick(ForceInput{Eigen::Vector3d::Zero(), 0.0});  // engaged
-  // A probe pressing 2 mm into a surface through the arm's home pose.
+  HapticLoopSettings settings;
+  settings.output.max_force = k.max_force();
+  HapticLoop loop(k, settings);
+  LatestSlot<PackedForceModel> slot;
   somasim_arm_state_t s{};
   s.num_joints = 6;
-  s.heartbeat = 1;
-  arm::WriteState(&block->block().state, s);
+  int64_t now = 1'000'000'000;
+  const auto tick = [&] {
+    ++s.heartbeat;
+    arm::WriteState(&block->block().state, s);  // the driver's part, outside the timing below
+    now += 1'000'000;
+    HapticLoopInput in;
+    in.now_ns = now;
+    in.header_problem = block->HeaderProblem();
+    in.read = arm::ReadState(block->block().state, &in.state);
+    PackedForceModel model;
+    uint64_t version = 0;
+    const bool have = slot.Read(&model, &version) && version > 0;
+    in.model = have ? &model : nullptr;
+    arm::WriteCommand(&block->block().command, loop.Tick(in));
+  };
+  // A probe pressing 2 mm into a surface through the arm's home pose, engaged.
   const ArmPose home = k.ToScene(k.Forward(k.JointsFromEncoders(s.joint)));
-  contact::LocalForceModel model;
-  model.in_contact = true;
-  model.contact_point = home.position + Eigen::Vector3d(0, 0, 0.002);
-  model.contact_stiffness = 600.0;
-  somasim_arm_command_t command{};
-  command.num_joints = 6;
+  contact::LocalForceModel m;
+  m.in_contact = true;
+  m.contact_point = home.position - Eigen::Vector3d(0, 0, 0.01);
+  m.contact_stiffness = 600.0;
+  for (int i = 0; i < 50; ++i) {
+    slot.Write(Pack(m, now));
+    tick();
+  }
+  m.contact_point = home.position + Eigen::Vector3d(0, 0, 0.002);
+  for (int i = 0; i < 600; ++i) {
+    slot.Write(Pack(m, now));
+    tick();
+  }
   std::vector<double> ns;
   ns.reserve(1 << 20);
-  Eigen::Vector3d previous = home.position;
   for (auto _ : state) {
+    ++s.heartbeat;
+    arm::WriteState(&block->block().state, s);
+    slot.Write(Pack(m, now));
+    now += 1'000'000;
     const Clock::time_point t0 = Clock::now();
-    somasim_arm_state_t read{};
-    arm::ReadState(block->block().state, &read);
-    const JointVector q = k.JointsFromEncoders(read.joint);
-    Jacobian j;
-    const ArmPose scene = k.ToScene(k.Forward(q, &j));
-    const Eigen::Vector3d velocity = (scene.position - previous) * 1e3;
-    previous = scene.position;
-    const contact::ForceSample f =
-        contact::EvaluateLocalForceModel(model, scene.position, velocity);
-    ForceInput input;
-    input.desired = f.force;
-    input.model_age = 0.001;
-    input.velocity = velocity;
-    const Eigen::Vector3d rendered = output.Tick(input);
-    JointVector tau;
-    k.Torques(j, k.ForceToArm(rendered), &tau);
-    ++command.heartbeat;
-    command.enable = output.engaged() ? 1 : 0;
-    for (int i = 0; i < 6; ++i) command.torque[i] = tau[i];
-    arm::WriteCommand(&block->block().command, command);
+    HapticLoopInput in;
+    in.now_ns = now;
+    in.header_problem = block->HeaderProblem();
+    in.read = arm::ReadState(block->block().state, &in.state);
+    PackedForceModel model;
+    uint64_t version = 0;
+    const bool have = slot.Read(&model, &version) && version > 0;
+    in.model = have ? &model : nullptr;
+    arm::WriteCommand(&block->block().command, loop.Tick(in));
     const Clock::time_point t1 = Clock::now();
     if (ns.size() < ns.capacity()) {
       ns.push_back(static_cast<double>(
           std::chrono::duration_cast<std::chrono::nanoseconds>(t1 - t0).count()));
     }
   }
+  state.counters["force_n"] = loop.arm_force().norm();  // 1.2 N: the press was rendered
   Percentiles(state, &ns);
   arm::ArmBlock::Unlink(name);
 }
