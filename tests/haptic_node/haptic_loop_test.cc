@@ -13,6 +13,7 @@
 #include <gtest/gtest.h>
 
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <limits>
 #include <string>
@@ -377,6 +378,10 @@ TEST(LatestSlot, AReaderUnderAConcurrentWriterNeverSeesATornValue) {
     for (uint64_t i = 1; !done.load(std::memory_order_relaxed); ++i) {
       for (uint64_t& x : w.words) x = i;
       slot.Write(w);
+      // A breath between writes (the real writer writes at 200 Hz), so reads also get through.
+      const auto until = std::chrono::steady_clock::now() + std::chrono::microseconds(2);
+      while (std::chrono::steady_clock::now() < until) {
+      }
     }
   });
   const int reads = testing::kUnderSanitizer ? 100000 : 2000000;
@@ -392,7 +397,7 @@ TEST(LatestSlot, AReaderUnderAConcurrentWriterNeverSeesATornValue) {
   }
   done = true;
   writer.join();
-  EXPECT_GT(ok, 1000);  // a writer writing flat out makes many reads retry, never tear
+  EXPECT_GT(ok, reads / 100);  // reads that overlap a write retry; none may tear
 }
 
 TEST(MicrosecondHistogram, QuantilesCountsAndTheMaximum) {
