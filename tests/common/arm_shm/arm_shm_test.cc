@@ -229,7 +229,7 @@ TEST(ArmShm, StateErrorNamesWhatIsWrong) {
   const auto with = [&](auto change) {
     somasim_arm_state_t t = s;
     change(&t);
-    const std::string error = StateError(t, 3);
+    std::string error = StateError(t, 3);
     EXPECT_EQ(error.empty(), StateProblem(t, 3) == nullptr) << error;  // the loop's check agrees
     return error;
   };
