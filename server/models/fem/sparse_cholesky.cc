@@ -3,6 +3,7 @@
 #include <cholmod.h>
 
 #include <algorithm>
+#include <array>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -20,6 +21,11 @@ struct SparseCholesky::Impl {
   bool factorised = false;
   // InverseBlock: a simplicial copy of the factor and its workspace (made on first use).
   cholmod_factor* simplicial = nullptr;
+  // UpdateDowndate's C (size × 16, room for 64 × 16 entries) and the factor's inverse
+  // permutation; `ldl`: the factor has been turned into a simplicial LDL'.
+  cholmod_sparse* updown = nullptr;
+  std::vector<int32_t> updown_inverse_perm;
+  bool ldl = false;
   std::vector<int32_t> inverse_perm;  // row of the permuted system of each original index
   std::vector<uint8_t> mark;          // size: on the current path
   std::vector<int32_t> path;
@@ -39,6 +45,7 @@ struct SparseCholesky::Impl {
   ~Impl() {
     cholmod_free_factor(&factor, &common);
     cholmod_free_factor(&simplicial, &common);
+    cholmod_free_sparse(&updown, &common);
     cholmod_free_dense(&rhs, &common);
     cholmod_free_dense(&solution, &common);
     cholmod_free_dense(&work_y, &common);
@@ -73,6 +80,7 @@ void SparseCholesky::Analyse(const LowerCsc& matrix) {
   cholmod_sparse a = Impl::View(matrix);
   cholmod_free_factor(&impl_->factor, &impl_->common);
   cholmod_free_factor(&impl_->simplicial, &impl_->common);
+  impl_->ldl = false;
   impl_->factor = cholmod_analyze(&a, &impl_->common);
   if (impl_->factor == nullptr) {
     throw std::runtime_error("cholmod_analyze failed, status " +
@@ -94,6 +102,72 @@ bool SparseCholesky::Factorise(const LowerCsc& matrix) {
   impl_->factorised = ok != 0 && impl_->common.status == CHOLMOD_OK &&
                       impl_->factor->minor == static_cast<size_t>(impl_->size);
   return impl_->factorised;
+}
+
+bool SparseCholesky::UpdateDowndate(bool update, const int32_t* rows, int32_t num_rows,
+                                    const double* c, int32_t rank) {
+  Impl& s = *impl_;
+  constexpr int32_t kMaxRows = 64, kMaxRank = 16;
+  if (num_rows < 1 || num_rows > kMaxRows || rank < 1 || rank > kMaxRank) {
+    throw std::invalid_argument("SparseCholesky::UpdateDowndate: 1..64 rows, rank 1..16");
+  }
+  for (int32_t i = 0; i < num_rows; ++i) {
+    if (rows[i] < 0 || rows[i] >= s.size) {
+      throw std::out_of_range("SparseCholesky::UpdateDowndate: row out of range");
+    }
+  }
+  if (!s.factorised) return false;
+  const auto n = static_cast<size_t>(s.size);
+  if (!s.ldl) {
+    if (cholmod_change_factor(CHOLMOD_REAL, /*to_ll=*/0, /*to_super=*/0, /*to_packed=*/0,
+                              /*to_monotonic=*/1, s.factor, &s.common) == 0) {
+      throw std::runtime_error("cholmod: out of memory converting the factor to LDL'");
+    }
+    const auto* perm = static_cast<const int32_t*>(s.factor->Perm);
+    s.updown_inverse_perm.resize(n);
+    for (size_t k = 0; k < n; ++k) {
+      s.updown_inverse_perm[static_cast<size_t>(perm[k])] = static_cast<int32_t>(k);
+    }
+    if (s.updown == nullptr) {
+      s.updown = cholmod_allocate_sparse(n, kMaxRank, kMaxRows * kMaxRank, /*sorted=*/1,
+                                         /*packed=*/1, /*stype=*/0, CHOLMOD_REAL, &s.common);
+      if (s.updown == nullptr) throw std::runtime_error("cholmod: out of memory");
+    }
+    s.ldl = true;
+  }
+  cholmod_free_factor(&s.simplicial, &s.common);  // InverseBlock's copy is stale
+  // C in the factor's permuted order (L is the factor of P A Pᵀ): rows sorted per column.
+  std::array<std::pair<int32_t, int32_t>, kMaxRows> order{};
+  for (int32_t i = 0; i < num_rows; ++i) {
+    order[static_cast<size_t>(i)] = {s.updown_inverse_perm[static_cast<size_t>(rows[i])], i};
+  }
+  std::sort(order.begin(), order.begin() + num_rows);
+  cholmod_sparse& cs = *s.updown;
+  auto* p = static_cast<int32_t*>(cs.p);
+  auto* ri = static_cast<int32_t*>(cs.i);
+  auto* x = static_cast<double*>(cs.x);
+  cs.ncol = static_cast<size_t>(rank);
+  int32_t nz = 0;
+  for (int32_t j = 0; j < rank; ++j) {
+    p[j] = nz;
+    for (int32_t i = 0; i < num_rows; ++i) {
+      const auto [row, source] = order[static_cast<size_t>(i)];
+      ri[nz] = row;
+      x[nz] =
+          c[static_cast<size_t>(j) * static_cast<size_t>(num_rows) + static_cast<size_t>(source)];
+      ++nz;
+    }
+  }
+  p[rank] = nz;
+  s.common.status = CHOLMOD_OK;
+  const int ok = cholmod_updown(update ? 1 : 0, &cs, s.factor, &s.common);
+  s.factorised = ok != 0 && s.common.status == CHOLMOD_OK;
+  // A downdate to a singular matrix need not fail outright: rounding can leave a pivot a hair
+  // above zero. min D / max D at rounding level (CHOLMOD's estimate, O(n)) is singular too.
+  if (s.factorised && !update && cholmod_rcond(s.factor, &s.common) < 1e-13) {
+    s.factorised = false;
+  }
+  return s.factorised;
 }
 
 void SparseCholesky::Solve(const double* b, double* x) {

@@ -1,6 +1,6 @@
 // CHOLMOD's sparse Cholesky factorisation (SuiteSparse; supernodal, BLAS from OpenBLAS) behind
 // a small RAII type: analyse a pattern once, factorise new values of that pattern many times,
-// solve. The cutting issue will add CHOLMOD's in-place update/downdate here.
+// solve; update or downdate a factor in place (the cutting issue).
 #pragma once
 
 #include <cstdint>
@@ -48,6 +48,19 @@ class SparseCholesky {
   // for all of them, and neighbouring blocks share most of their paths (the dense top of the
   // tree). Allocates nothing once its workspace has the size a call needs.
   void InverseBlocks(const int32_t* indices, int32_t count, int32_t blocks, double* out);
+  // The factorised matrix A becomes A + C Cᵀ (update) or A − C Cᵀ (downdate), in place by
+  // CHOLMOD's update/downdate (Davis & Hager), for C of `rank` columns (1..16) whose nonzero
+  // rows are `rows` (num_rows distinct indices in 0..size-1, at most 64); `c` holds those rows'
+  // values, column-major (num_rows × rank). For the cutting issue: an element removed is a
+  // rank-6 downdate of its stiffness, a relocated element a change of rank ≤ 12. The first call
+  // turns the factor into a simplicial LDLᵀ (allocates; solves keep working on it); later calls
+  // whose rows are already coupled in A allocate nothing. Returns false — and the factor is
+  // then unusable until the next Factorise — when a downdate leaves A not positive definite
+  // (or singular up to rounding: min D / max D below 1e-13).
+  // Throws std::invalid_argument for sizes out of range, std::out_of_range for a bad row.
+  bool UpdateDowndate(bool update, const int32_t* rows, int32_t num_rows, const double* c,
+                      int32_t rank);
+
   // CHOLMOD's rough reciprocal condition estimate of the last factorisation, (min diag L /
   // max diag L)²: near machine epsilon for a matrix that is singular up to rounding (which a
   // Cholesky factorisation may still complete with a tiny pivot). 0 without a factorisation.
