@@ -72,7 +72,7 @@ CutStiffness::CutStiffness(const mesh::TetMesh& rest, const std::vector<uint8_t>
 }
 
 Matrix12d CutStiffness::Remove(int32_t e) {
-  const Matrix12d change = -ke_[static_cast<size_t>(e)];
+  Matrix12d change = -ke_[static_cast<size_t>(e)];
   ke_[static_cast<size_t>(e)].setZero();
   alive_[static_cast<size_t>(e)] = 0;
   return change;
@@ -83,7 +83,7 @@ Matrix12d CutStiffness::Relocate(int32_t e, const mesh::Points& positions) {
   Eigen::Matrix<double, 3, 4> corners;
   for (int a = 0; a < 4; ++a) corners.col(a) = positions.col(tets_(a, e));
   const Matrix12d now = LinearTetStiffness(corners, lambda_, mu_);
-  const Matrix12d change = now - ke_[static_cast<size_t>(e)];
+  Matrix12d change = now - ke_[static_cast<size_t>(e)];
   ke_[static_cast<size_t>(e)] = now;
   return change;
 }
@@ -242,7 +242,8 @@ bool SparseFactorStiffness::Apply(const LowRankChange& c) {
     std::array<double, 144> packed{};
     for (int j = 0; j < k; ++j) {
       for (int i = 0; i < c.num_rows; ++i)
-        packed[static_cast<size_t>(j * c.num_rows + i)] = c_(i, j);
+        packed[static_cast<size_t>(j) * static_cast<size_t>(c.num_rows) + static_cast<size_t>(i)] =
+            c_(i, j);
     }
     if (!factor_.UpdateDowndate(update, c.rows.data(), c.num_rows, packed.data(), k)) return false;
   }
