@@ -174,6 +174,61 @@ LowRankChange SplitChange(const CutStiffness& problem, int32_t e, const Matrix12
   return c;
 }
 
+StepChange::StepChange()
+    : sum_(Eigen::MatrixXd::Zero(kMaxRows, kMaxRows)),
+      eigen_(kMaxRows),
+      w_(kMaxRows, kMaxRows),
+      d_(kMaxRows) {}
+
+void StepChange::Clear() {
+  sum_.topLeftCorner(num_rows_, num_rows_).setZero();
+  num_rows_ = 0;
+  rank_ = 0;
+}
+
+bool StepChange::Add(const CutStiffness& problem, int32_t e, const Matrix12d& change) {
+  std::array<int32_t, 12> local{};  // the element's free DOFs' places in rows_ (−1: held)
+  int32_t added = 0;
+  for (int i = 0; i < 12; ++i) {
+    const int32_t r = problem.dof(problem.node(e, i / 3), i % 3);
+    local[static_cast<size_t>(i)] = -1;
+    if (r < 0) continue;
+    int32_t at = -1;
+    for (int32_t k = 0; k < num_rows_ + added && at < 0; ++k) {
+      if (rows_[static_cast<size_t>(k)] == r) at = k;
+    }
+    if (at < 0) {
+      if (num_rows_ + added == kMaxRows) return false;  // rows_ past num_rows_ are unused
+      at = num_rows_ + added++;
+      rows_[static_cast<size_t>(at)] = r;
+    }
+    local[static_cast<size_t>(i)] = at;
+  }
+  num_rows_ += added;
+  for (int i = 0; i < 12; ++i) {
+    if (local[static_cast<size_t>(i)] < 0) continue;
+    for (int j = 0; j < 12; ++j) {
+      if (local[static_cast<size_t>(j)] < 0) continue;
+      sum_(local[static_cast<size_t>(i)], local[static_cast<size_t>(j)]) += change(i, j);
+    }
+  }
+  return true;
+}
+
+void StepChange::Split() {
+  rank_ = 0;
+  if (num_rows_ == 0) return;
+  eigen_.compute(sum_);  // the padded square: its extra eigenvalues are zero
+  const Eigen::VectorXd& values = eigen_.eigenvalues();
+  const double largest = values.cwiseAbs().maxCoeff();
+  for (int32_t i = 0; i < kMaxRows; ++i) {
+    if (!(std::abs(values[i]) > 1e-12 * largest)) continue;
+    w_.col(rank_) = eigen_.eigenvectors().col(i);
+    d_[rank_] = values[i];
+    ++rank_;
+  }
+}
+
 DenseInverseStiffness::DenseInverseStiffness(const CutStiffness& problem) {
   const Eigen::MatrixXd k = problem.AssembleDense();
   const Eigen::LLT<Eigen::MatrixXd> llt(k);
@@ -216,7 +271,8 @@ void DenseInverseStiffness::Apply(const LowRankChange& c) {
   }
 }
 
-SparseFactorStiffness::SparseFactorStiffness(const CutStiffness& problem) {
+SparseFactorStiffness::SparseFactorStiffness(const CutStiffness& problem)
+    : packed_(static_cast<size_t>(StepChange::kMaxRows) * 16, 0.0) {
   const models::fem::LowerCsc k = problem.AssembleSparse();
   factor_.Analyse(k);
   if (!factor_.Factorise(k)) {
@@ -246,6 +302,30 @@ bool SparseFactorStiffness::Apply(const LowRankChange& c) {
             c_(i, j);
     }
     if (!factor_.UpdateDowndate(update, c.rows.data(), c.num_rows, packed.data(), k)) return false;
+  }
+  return true;
+}
+
+bool SparseFactorStiffness::Apply(const StepChange& c) {
+  constexpr int32_t kColumns = 16;
+  const auto m = static_cast<size_t>(c.num_rows());
+  for (const bool update : {true, false}) {
+    int32_t k = 0;
+    for (int32_t i = 0; i <= c.rank(); ++i) {
+      const bool last = i == c.rank();
+      if (!last && (c.d(i) > 0.0) == update) {
+        const double scale = std::sqrt(std::abs(c.d(i)));
+        const double* w = c.w(i);
+        for (size_t r = 0; r < m; ++r) packed_[static_cast<size_t>(k) * m + r] = scale * w[r];
+        ++k;
+      }
+      if (k == kColumns || (last && k > 0)) {
+        if (!factor_.UpdateDowndate(update, c.rows(), c.num_rows(), packed_.data(), k)) {
+          return false;
+        }
+        k = 0;
+      }
+    }
   }
   return true;
 }

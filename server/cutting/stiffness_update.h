@@ -12,6 +12,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <Eigen/Eigenvalues>
 #include <Eigen/StdVector>
 #include <array>
 #include <cstdint>
@@ -79,6 +80,39 @@ struct LowRankChange {
 };
 LowRankChange SplitChange(const CutStiffness& problem, int32_t e, const Matrix12d& change);
 
+// The changes of one blade step summed over the union of their free DOFs (at most kMaxRows),
+// then split as one: Σ d_i w_i w_iᵀ over its eigenvalues |d_i| > 1e-12 max|d|. A step's
+// relocations change many elements that share vertices: as one change their rank is the union's
+// size, not the sum of the elements' ranks, and the factor is updated in far fewer passes. Sized
+// at construction; Add and Split allocate nothing (Split decomposes the kMaxRows-square matrix,
+// zero-padded).
+class StepChange {
+ public:
+  static constexpr int32_t kMaxRows = 192;
+  StepChange();
+  void Clear();
+  // Adds element e's change; false (nothing added) when its DOFs would not fit: Split and apply
+  // what is there, Clear, then add again.
+  bool Add(const CutStiffness& problem, int32_t e, const Matrix12d& change);
+  void Split();
+
+  int32_t num_rows() const { return num_rows_; }
+  const int32_t* rows() const { return rows_.data(); }
+  int32_t rank() const { return rank_; }
+  // Column i of the split (num_rows values) and its eigenvalue.
+  const double* w(int32_t i) const { return w_.col(i).data(); }
+  double d(int32_t i) const { return d_[i]; }
+
+ private:
+  int32_t num_rows_ = 0;
+  std::array<int32_t, kMaxRows> rows_{};
+  Eigen::MatrixXd sum_;  // kMaxRows², the summed change over rows_
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eigen_;
+  Eigen::MatrixXd w_;  // kMaxRows², the kept eigenvectors first
+  Eigen::VectorXd d_;
+  int32_t rank_ = 0;
+};
+
 // (a) Seed 003: the dense inverse, changed by Sherman–Morrison–Woodbury.
 class DenseInverseStiffness {
  public:
@@ -102,11 +136,14 @@ class SparseFactorStiffness {
   explicit SparseFactorStiffness(const CutStiffness& problem);
   // Returns false when the factor became unusable (a change left K not positive definite).
   bool Apply(const LowRankChange& change);
+  // A step's summed change (after Split), in passes of 16 columns. Allocates nothing.
+  bool Apply(const StepChange& change);
   void Solve(const Eigen::VectorXd& f, Eigen::VectorXd* u);
 
  private:
   models::fem::SparseCholesky factor_;
   Eigen::Matrix<double, 12, 12> c_;  // scaled columns √|d_i| w_i
+  std::vector<double> packed_;       // StepChange::kMaxRows × 16
 };
 
 }  // namespace somasim::cutting

@@ -107,9 +107,9 @@ bool SparseCholesky::Factorise(const LowerCsc& matrix) {
 bool SparseCholesky::UpdateDowndate(bool update, const int32_t* rows, int32_t num_rows,
                                     const double* c, int32_t rank) {
   Impl& s = *impl_;
-  constexpr int32_t kMaxRows = 64, kMaxRank = 16;
+  constexpr int32_t kMaxRows = 256, kMaxRank = 16;
   if (num_rows < 1 || num_rows > kMaxRows || rank < 1 || rank > kMaxRank) {
-    throw std::invalid_argument("SparseCholesky::UpdateDowndate: 1..64 rows, rank 1..16");
+    throw std::invalid_argument("SparseCholesky::UpdateDowndate: 1..256 rows, rank 1..16");
   }
   for (int32_t i = 0; i < num_rows; ++i) {
     if (rows[i] < 0 || rows[i] >= s.size) {

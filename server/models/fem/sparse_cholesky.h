@@ -50,7 +50,7 @@ class SparseCholesky {
   void InverseBlocks(const int32_t* indices, int32_t count, int32_t blocks, double* out);
   // The factorised matrix A becomes A + C Cᵀ (update) or A − C Cᵀ (downdate), in place by
   // CHOLMOD's update/downdate (Davis & Hager), for C of `rank` columns (1..16) whose nonzero
-  // rows are `rows` (num_rows distinct indices in 0..size-1, at most 64); `c` holds those rows'
+  // rows are `rows` (num_rows distinct indices in 0..size-1, at most 256); `c` holds those rows'
   // values, column-major (num_rows × rank). For the cutting issue: an element removed is a
   // rank-6 downdate of its stiffness, a relocated element a change of rank ≤ 12. The first call
   // turns the factor into a simplicial LDLᵀ (allocates; solves keep working on it); later calls

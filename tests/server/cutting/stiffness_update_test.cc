@@ -113,22 +113,38 @@ TEST(CutStiffness, SmwAndTheUpdatedFactorSolveTheCutPlateAsAFreshFactorisationDo
   CutStiffness problem(p.rest, p.fixed, 1.0e6, 0.4);  // seed 003's plate: 1 MPa, ν 0.4
   DenseInverseStiffness dense(problem);
   SparseFactorStiffness sparse(problem);
+  SparseFactorStiffness batched(problem);  // the same changes summed per batch (StepChange)
+  StepChange step;
+  const auto add = [&](int32_t e, const Matrix12d& change) {
+    if (!step.Add(problem, e, change)) {
+      step.Split();
+      ASSERT_TRUE(batched.Apply(step));
+      step.Clear();
+      ASSERT_TRUE(step.Add(problem, e, change));
+    }
+  };
   // The cut as the server applies it: removals, then the elements whose corners moved.
   for (const int32_t e : p.removed) {
-    const LowRankChange c = SplitChange(problem, e, problem.Remove(e));
+    const Matrix12d change = problem.Remove(e);
+    const LowRankChange c = SplitChange(problem, e, change);
     EXPECT_LE(c.rank, 6);
     dense.Apply(c);
     ASSERT_TRUE(sparse.Apply(c));
+    add(e, change);
   }
   int relocated = 0;
   for (const int32_t e : ElementsTouching(p.rest.tetrahedra, p.moved)) {
     if (!problem.alive(e)) continue;
-    const LowRankChange c = SplitChange(problem, e, problem.Relocate(e, p.cut_rest));
+    const Matrix12d change = problem.Relocate(e, p.cut_rest);
+    const LowRankChange c = SplitChange(problem, e, change);
     EXPECT_LE(c.rank, 12);
     dense.Apply(c);
     ASSERT_TRUE(sparse.Apply(c));
+    add(e, change);
     ++relocated;
   }
+  step.Split();
+  ASSERT_TRUE(batched.Apply(step));
   EXPECT_GT(relocated, 5);
   // The reference: the cut mesh assembled and factorised from scratch.
   const Eigen::MatrixXd k = problem.AssembleDense();
@@ -145,6 +161,8 @@ TEST(CutStiffness, SmwAndTheUpdatedFactorSolveTheCutPlateAsAFreshFactorisationDo
     EXPECT_LT(RelativeError(u, reference), 1e-8) << "SMW";
     sparse.Solve(f, &u);
     EXPECT_LT(RelativeError(u, reference), 1e-8) << "CHOLMOD update/downdate";
+    batched.Solve(f, &u);
+    EXPECT_LT(RelativeError(u, reference), 1e-8) << "CHOLMOD, the changes summed per batch";
   }
 }
 
@@ -177,9 +195,26 @@ TEST(CutStiffness, FactorUpdatesAfterTheFirstAllocateNothing) {
   std::vector<LowRankChange> changes;
   for (const int32_t e : p.removed) changes.push_back(SplitChange(problem, e, problem.Remove(e)));
   ASSERT_TRUE(sparse.Apply(changes[0]));  // turns the factor into LDL' (allocates)
+  StepChange step;
+  std::vector<Matrix12d, Eigen::aligned_allocator<Matrix12d>> relocations;
+  std::vector<int32_t> relocated;
+  for (const int32_t e : ElementsTouching(p.rest.tetrahedra, p.moved)) {
+    if (!problem.alive(e)) continue;
+    relocations.push_back(problem.Relocate(e, p.cut_rest));
+    relocated.push_back(e);
+  }
   testing::AllocationCounter counter;
   for (size_t i = 1; i < changes.size(); ++i) ASSERT_TRUE(sparse.Apply(changes[i]));
+  // A summed step too: Add, Split, Apply.
+  int32_t added = 0;
+  for (size_t i = 0; i < relocated.size(); ++i) {
+    if (!step.Add(problem, relocated[i], relocations[i])) break;
+    ++added;
+  }
+  step.Split();
+  ASSERT_TRUE(sparse.Apply(step));
   EXPECT_EQ(counter.count(), 0);
+  EXPECT_GT(added, 3);
 }
 
 TEST(CutStiffness, RefusesBadProblems) {
