@@ -8,6 +8,7 @@
 // torque, exit 8). Exit codes: 0 done, 2 usage, 3 bad script, 4 I/O, 8 the block is unusable,
 // 70 bug.
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -16,6 +17,7 @@
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <thread>
+#include <vector>
 
 #include "common/app/log.h"
 #include "common/app/realtime.h"
@@ -61,7 +63,8 @@ int Main(int argc, char** argv) {
   cli.add_option("--torques", torques_path,
                  "CSV per cycle: monotonic ns, node heartbeat, watchdog tripped, applied torque "
                  "norm [N m], handle x y z [m] (arm frame), the force the applied torques "
-                 "render [N] (the node's Cartesian force; 0 while tripped or disabled)");
+                 "render [N] (the node's Cartesian force; 0 while tripped or disabled); kept "
+                 "in memory and written when it stops (the first 10 minutes)");
   cli.add_option("--report", report_path, "JSON report at the end");
   int rt_priority = 79;
   cli.add_option("--rt-priority", rt_priority,
@@ -109,6 +112,19 @@ int Main(int argc, char** argv) {
   }
   app::InstallStopSignals();
   if (duration == 0.0) duration = script->duration() + 1.0;
+  // The per-cycle record is kept in memory, sized now, and written when the driver stops: file
+  // writes in the cycle could block it (a busy disk) past the node's 10 ms watchdog. At most
+  // the first 10 minutes are recorded.
+  struct Cycle {
+    int64_t ns;
+    uint64_t node_heartbeat;
+    int tripped;
+    double torque, x, y, z, force;
+  };
+  std::vector<Cycle> record;
+  if (torques) {
+    record.reserve(static_cast<size_t>(std::min(duration, 600.0) * rate) + 16);
+  }
   // A driver runs its cycle in real time; here the emulation asks for the same (and says when
   // it is refused: then on the fair scheduler with a short slice).
   if (rt_priority > 0) {
@@ -138,7 +154,8 @@ int Main(int argc, char** argv) {
     // The header, every 100 ms: a corrupted block stops the arm.
     if (cycles % static_cast<uint64_t>(rate / 10.0) == 0) {
       ++header_checks;
-      if (const std::string bad = block->HeaderError(); !bad.empty()) {
+      if (block->HeaderProblem() != nullptr) {
+        const std::string bad = block->HeaderError();
         Log(LogLevel::kError, "block_unusable", {{"reason", bad}, {"monotonic_ns", Ns(now)}});
         exit_code = kExitBlock;
         break;
@@ -156,17 +173,16 @@ int Main(int argc, char** argv) {
     was_tripped = sim.watchdog_tripped();
     arm::WriteState(&block->block().state,
                     sim.State(++heartbeat, static_cast<uint64_t>(Ns(now)), hand.buttons, hand.jaw));
-    if (torques) {
+    if (torques && record.size() < record.capacity()) {
       const ArmPose pose = sim.Pose();
-      torques << Ns(now) << ',' << command.heartbeat << ',' << (sim.watchdog_tripped() ? 1 : 0)
-              << ',' << sim.applied_torque().norm() << ',' << pose.position.x() << ','
-              << pose.position.y() << ',' << pose.position.z() << ','
-              << (sim.watchdog_tripped() || command.enable == 0
-                      ? 0.0
-                      : std::sqrt(command.force[0] * command.force[0] +
-                                  command.force[1] * command.force[1] +
-                                  command.force[2] * command.force[2]))
-              << '\n';
+      record.push_back({Ns(now), command.heartbeat, sim.watchdog_tripped() ? 1 : 0,
+                        sim.applied_torque().norm(), pose.position.x(), pose.position.y(),
+                        pose.position.z(),
+                        sim.watchdog_tripped() || command.enable == 0
+                            ? 0.0
+                            : std::sqrt(command.force[0] * command.force[0] +
+                                        command.force[1] * command.force[1] +
+                                        command.force[2] * command.force[2])});
     }
     ++cycles;
     next += period;
@@ -179,6 +195,10 @@ int Main(int argc, char** argv) {
   }
   // Stopping: zero torque is the arm's own business; its last state stays for the node to see
   // its heartbeat stop.
+  for (const Cycle& c : record) {
+    torques << c.ns << ',' << c.node_heartbeat << ',' << c.tripped << ',' << c.torque << ',' << c.x
+            << ',' << c.y << ',' << c.z << ',' << c.force << '\n';
+  }
   if (torques) torques.flush();
   Log(LogLevel::kInfo, "stopped",
       {{"cycles", cycles},

@@ -127,7 +127,7 @@ class HapticLoop {
   uint64_t last_heartbeat_ = 0;
   int64_t heartbeat_changed_ns_ = 0;
   int64_t still_ticks_ = 0;        // our ticks since the driver's heartbeat last moved
-  int64_t torn_streak_ = 0;  // consecutive torn reads
+  int64_t torn_streak_ = 0;        // consecutive torn reads
   int64_t healthy_since_ns_ = -1;  // the device usable since (< 0: not now)
   bool have_pose_ = false;
   Eigen::Vector3d last_arm_position_ = Eigen::Vector3d::Zero();

@@ -290,6 +290,11 @@ int HapticMain(int argc, char** argv) {
   cli.add_option("--spin-us", shm.spin_us, "shm: microseconds spun before each deadline")
       ->check(CLI::Range(0, 500))
       ->capture_default_str();
+  cli.add_option("--arm-timeout-ms", shm.arm_timeout_ms,
+                 "shm: how long the driver's heartbeat may be still before a fault (SPEC: 10; "
+                 "raise it only where the host stalls, e.g. tests on a shared VM)")
+      ->check(CLI::Range(2.0, 1000.0))
+      ->capture_default_str();
   cli.add_option("--session", options.session, "the session's name (its DDS partition)")
       ->capture_default_str();
   cli.add_option("--station", options.station, "this station's name, for logs")

@@ -200,6 +200,7 @@ int RunShmNode(const ShmNodeOptions& o, const std::string& dds_config) {
   HapticLoopSettings settings;
   settings.output.dt = 1.0 / o.rate;
   settings.output.max_force = kinematics->max_force();
+  settings.arm_timeout = 1e-3 * o.arm_timeout_ms;
   HapticLoop loop(*kinematics, settings);
 
   std::unique_ptr<dds::Domain> domain;
@@ -237,6 +238,16 @@ int RunShmNode(const ShmNodeOptions& o, const std::string& dds_config) {
        {"session", o.session},
        {"rate_hz", o.rate}});
   std::thread loop_thread([&] { RunLoop(o, *block, loop, *shared, *timing); });
+  // Whatever ends the wire thread (an exception from DDS included), the loop is stopped (it
+  // writes its disabling command) and joined before anything it uses goes.
+  struct StopLoop {
+    Shared& shared;
+    std::thread& thread;
+    ~StopLoop() {
+      shared.stop.store(true);
+      if (thread.joinable()) thread.join();
+    }
+  } stop_loop{*shared, loop_thread};
 
   // The wire thread.
   const int64_t start = MonotonicNs();
@@ -356,7 +367,7 @@ int RunShmNode(const ShmNodeOptions& o, const std::string& dds_config) {
   }
   shared->stop.store(true);
   loop_thread.join();
-  close(shared->wake_fd);
+  close(shared->wake_fd);  // (the guard above then has nothing left to join)
 
   const double wall = 1e-9 * static_cast<double>(MonotonicNs() - start);
   const LoopTiming& lt = *timing;

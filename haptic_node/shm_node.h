@@ -29,11 +29,12 @@ struct ShmNodeOptions {
   std::string session = "default";
   std::string station = "station-1";
   uint32_t domain = 0;
-  double rate = 1000.0;   // [Hz] the loop
-  double duration = 0.0;  // [s] 0: until SIGINT or SIGTERM
-  int rt_priority = 80;   // SCHED_FIFO priority of the loop; 0: do not ask
-  int spin_us = 50;       // [µs] spun before each deadline
-  std::string report;     // JSON report at the end ("" = none)
+  double rate = 1000.0;          // [Hz] the loop
+  double duration = 0.0;         // [s] 0: until SIGINT or SIGTERM
+  int rt_priority = 80;          // SCHED_FIFO priority of the loop; 0: do not ask
+  int spin_us = 50;              // [µs] spun before each deadline
+  double arm_timeout_ms = 10.0;  // [ms] the driver's heartbeat may be still this long (SPEC)
+  std::string report;            // JSON report at the end ("" = none)
 };
 
 // Runs the node; returns the process's exit code (mock_node.h's codes, and kExitArmBlock).
