@@ -88,50 +88,38 @@ Matrix12d CutStiffness::Relocate(int32_t e, const mesh::Points& positions) {
   return change;
 }
 
-Eigen::MatrixXd CutStiffness::AssembleDense() const {
-  Eigen::MatrixXd k = Eigen::MatrixXd::Zero(num_free_, num_free_);
+template <typename Fn>
+void CutStiffness::ForEachCoupling(Fn&& fn) const {
   for (Eigen::Index e = 0; e < tets_.cols(); ++e) {
-    if (alive_[static_cast<size_t>(e)] == 0) continue;
+    const bool alive = alive_[static_cast<size_t>(e)] != 0;
     const Matrix12d& ke = ke_[static_cast<size_t>(e)];
     for (int i = 0; i < 12; ++i) {
       const int32_t r = dof(tets_(i / 3, e), i % 3);
       if (r < 0) continue;
       for (int j = 0; j < 12; ++j) {
         const int32_t c = dof(tets_(j / 3, e), j % 3);
-        if (c >= 0) k(r, c) += ke(i, j);
+        if (c >= 0) fn(alive, r, c, ke(i, j));
       }
     }
   }
+}
+
+Eigen::MatrixXd CutStiffness::AssembleDense() const {
+  Eigen::MatrixXd k = Eigen::MatrixXd::Zero(num_free_, num_free_);
+  ForEachCoupling([&](bool alive, int32_t r, int32_t c, double value) {
+    if (alive) k(r, c) += value;
+  });
   return k;
 }
 
 models::fem::LowerCsc CutStiffness::AssembleSparse() const {
   std::vector<Eigen::Triplet<double>> triplets;
   triplets.reserve(static_cast<size_t>(tets_.cols()) * 78);
-  for (Eigen::Index e = 0; e < tets_.cols(); ++e) {
-    if (alive_[static_cast<size_t>(e)] == 0) continue;
-    const Matrix12d& ke = ke_[static_cast<size_t>(e)];
-    for (int i = 0; i < 12; ++i) {
-      const int32_t r = dof(tets_(i / 3, e), i % 3);
-      if (r < 0) continue;
-      for (int j = 0; j < 12; ++j) {
-        const int32_t c = dof(tets_(j / 3, e), j % 3);
-        if (c >= 0 && r >= c) triplets.emplace_back(r, c, ke(i, j));
-      }
-    }
-  }
   // The pattern keeps every pair an element couples, removed or not (an explicit zero): later
   // updates then never add fill to the factor.
-  for (Eigen::Index e = 0; e < tets_.cols(); ++e) {
-    if (alive_[static_cast<size_t>(e)] != 0) continue;
-    for (int i = 0; i < 12; ++i) {
-      const int32_t r = dof(tets_(i / 3, e), i % 3);
-      for (int j = 0; j < 12; ++j) {
-        const int32_t c = dof(tets_(j / 3, e), j % 3);
-        if (r >= 0 && c >= 0 && r >= c) triplets.emplace_back(r, c, 0.0);
-      }
-    }
-  }
+  ForEachCoupling([&](bool alive, int32_t r, int32_t c, double value) {
+    if (r >= c) triplets.emplace_back(r, c, alive ? value : 0.0);
+  });
   Eigen::SparseMatrix<double, Eigen::ColMajor, int32_t> m(num_free_, num_free_);
   m.setFromTriplets(triplets.begin(), triplets.end());
   m.makeCompressed();

@@ -61,6 +61,10 @@ class CutStiffness {
   models::fem::LowerCsc AssembleSparse() const;
 
  private:
+  // fn(alive, row, column, value) for every free-DOF pair each element couples.
+  template <typename Fn>
+  void ForEachCoupling(Fn&& fn) const;
+
   mesh::Tetrahedra tets_;
   std::vector<int32_t> node_dof_;
   int32_t num_free_ = 0;

@@ -292,35 +292,40 @@ bool TetCutter::SplitPinch(int32_t v, int32_t w, bool dry_run) {
     }
     const int32_t keep = roots[pick];
     sizes[pick] = -1;  // tried
-    // Would removing every other group's tetrahedra orphan a vertex?
-    bool orphans = false;
+    // Every other group's tetrahedra go, all or none.
+    int32_t count = 0;
     for (int32_t i = 0; i < m; ++i) {
-      if (find(i) == keep) continue;
-      const int32_t t = fan_[static_cast<size_t>(i)];
-      for (int k = 0; k < 4; ++k) ++losing_[static_cast<size_t>(tets_(k, t))];
+      if (find(i) != keep) chosen_[static_cast<size_t>(count++)] = fan_[static_cast<size_t>(i)];
     }
-    for (int32_t i = 0; i < m; ++i) {
-      if (find(i) == keep) continue;
-      const int32_t t = fan_[static_cast<size_t>(i)];
-      for (int k = 0; k < 4; ++k) {
-        const auto node = static_cast<size_t>(tets_(k, t));
-        orphans = orphans || losing_[node] >= node_alive_[node];
-      }
-    }
-    for (int32_t i = 0; i < m; ++i) {
-      if (find(i) == keep) continue;
-      const int32_t t = fan_[static_cast<size_t>(i)];
-      for (int k = 0; k < 4; ++k) losing_[static_cast<size_t>(tets_(k, t))] = 0;
-    }
-    if (orphans) continue;
-    for (int32_t i = 0; i < m; ++i) {
-      if (find(i) == keep) continue;
-      const int32_t t = fan_[static_cast<size_t>(i)];
-      if (!Remove(t)) break;
-    }
+    if (!RemoveAllOrNone(count)) continue;
     return true;
   }
   return false;  // every choice would orphan a vertex: the pinch stays (counted by the caller)
+}
+
+bool TetCutter::RemoveAllOrNone(int32_t count) {
+  // Would removing them all orphan a vertex? Count what each vertex would lose.
+  bool orphans = false;
+  for (int32_t i = 0; i < count; ++i) {
+    const int32_t t = chosen_[static_cast<size_t>(i)];
+    for (int k = 0; k < 4; ++k) ++losing_[static_cast<size_t>(tets_(k, t))];
+  }
+  for (int32_t i = 0; i < count; ++i) {
+    const int32_t t = chosen_[static_cast<size_t>(i)];
+    for (int k = 0; k < 4; ++k) {
+      const auto node = static_cast<size_t>(tets_(k, t));
+      orphans = orphans || losing_[node] >= node_alive_[node];
+    }
+  }
+  for (int32_t i = 0; i < count; ++i) {
+    const int32_t t = chosen_[static_cast<size_t>(i)];
+    for (int k = 0; k < 4; ++k) losing_[static_cast<size_t>(tets_(k, t))] = 0;
+  }
+  if (orphans) return false;
+  for (int32_t i = 0; i < count; ++i) {
+    if (!Remove(chosen_[static_cast<size_t>(i)])) break;
+  }
+  return true;
 }
 
 bool TetCutter::Pinched(int32_t v) { return SplitPinch(v, -1, true) || SplitLink(v, true); }
@@ -443,28 +448,11 @@ bool TetCutter::SplitLink(int32_t v, bool dry_run) {
   }
   if (goal < 0) return false;
   // All of the chain or none.
-  bool orphans = false;
+  int32_t count = 0;
   for (int32_t i = goal; i >= 0; i = parent_[static_cast<size_t>(i)]) {
-    const int32_t t = fan_[static_cast<size_t>(i)];
-    for (int k = 0; k < 4; ++k) ++losing_[static_cast<size_t>(tets_(k, t))];
+    chosen_[static_cast<size_t>(count++)] = fan_[static_cast<size_t>(i)];
   }
-  for (int32_t i = goal; i >= 0; i = parent_[static_cast<size_t>(i)]) {
-    const int32_t t = fan_[static_cast<size_t>(i)];
-    for (int k = 0; k < 4; ++k) {
-      const auto node = static_cast<size_t>(tets_(k, t));
-      orphans = orphans || losing_[node] >= node_alive_[node];
-    }
-  }
-  for (int32_t i = goal; i >= 0; i = parent_[static_cast<size_t>(i)]) {
-    const int32_t t = fan_[static_cast<size_t>(i)];
-    for (int k = 0; k < 4; ++k) losing_[static_cast<size_t>(tets_(k, t))] = 0;
-  }
-  if (orphans) return false;
-  for (int32_t i = goal; i >= 0; i = parent_[static_cast<size_t>(i)]) {
-    const int32_t t = fan_[static_cast<size_t>(i)];
-    if (!Remove(t)) break;
-  }
-  return true;
+  return RemoveAllOrNone(count);
 }
 
 CutStepResult TetCutter::Step(const models::SweptQuad& sweep, mesh::Points* positions) {

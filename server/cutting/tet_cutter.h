@@ -122,12 +122,16 @@ class TetCutter {
   bool RestoreAround(int32_t v);
   // Marks t removed and lists it; false when this step's list is full.
   bool Remove(int32_t t);
+  // Removes chosen_[0 .. count) unless that would leave a vertex in no alive tetrahedron;
+  // whether it removed them.
+  bool RemoveAllOrNone(int32_t count);
   static constexpr int32_t kMaxFan = 256;
   std::array<int32_t, 3 * kMaxFan> link_{};
   std::array<int32_t, 3 * kMaxFan> link_parent_{};
   std::array<int32_t, kMaxFan> dist_{};
   std::array<int32_t, kMaxFan> parent_{};
   std::array<int32_t, kMaxFan> fan_{};
+  std::array<int32_t, kMaxFan> chosen_{};  // what RemoveAllOrNone takes
   std::array<int32_t, kMaxFan> group_{};
 
   mesh::Tetrahedra tets_;
