@@ -92,6 +92,16 @@ class FemState final : public TissueState {
   // the last accepted step S^e (9 × num_tets), a step's offset (9 × num_tets), and the copies
   // a rejected step restores.
   std::vector<double> history, elastic_last, offset, good_history, good_elastic_last;
+  // The rest geometry the state is computed with (FemModel::ApplyCut): a copy of the model's at
+  // first, then cut. rest 3 × num_nodes [m], gradients 3 × 4·num_tets [1/m], volumes num_tets
+  // [m³] (0 for an element cut away).
+  mesh::Points rest;
+  Eigen::Matrix<double, 3, Eigen::Dynamic> gradients;
+  std::vector<double> volumes;
+  int32_t num_cut = 0;  // elements cut away
+  // ApplyCut's scratch: per moved node its rest move (3 × num_nodes), and per element its
+  // candidate gradients and volume while a move is tried.
+  mesh::Points rest_move;
 
  protected:
   void SaveGood() override {
@@ -150,6 +160,10 @@ std::unique_ptr<TissueState> FemModel::MakeState() const {
   auto state = std::make_unique<FemState>();
   InitialiseState(rest_, state.get());
   state->matrix = kind_ == FemKind::kHyperelastic ? pattern_ : upper_pattern_;
+  state->rest = rest_;
+  state->gradients = elements_.gradients;
+  state->volumes = elements_.volumes;
+  state->rest_move = mesh::Points::Zero(3, num_nodes());
   state->cg = CgScratch(num_nodes());
   state->rotations.assign(9 * static_cast<size_t>(num_tets()), 0.0);
   for (size_t e = 0; e < static_cast<size_t>(num_tets()); ++e) {
@@ -174,17 +188,17 @@ std::unique_ptr<TissueState> FemModel::MakeState() const {
   return state;
 }
 
-Matrix3d FemModel::RestBlock(int32_t e, int a, int b) const {
-  const Vector3d ga = elements_.gradients.col(4 * e + a);
-  const Vector3d gb = elements_.gradients.col(4 * e + b);
-  const double v = elements_.volumes[static_cast<size_t>(e)];
+Matrix3d FemModel::RestBlock(const Shape& sh, int32_t e, int a, int b) const {
+  const Vector3d ga = sh.gradients.col(4 * e + a);
+  const Vector3d gb = sh.gradients.col(4 * e + b);
+  const double v = sh.volumes[static_cast<size_t>(e)];
   return v * (lambda_ * ga * gb.transpose() + mu_ * gb * ga.transpose() +
               mu_ * ga.dot(gb) * Matrix3d::Identity());
 }
 
-void FemModel::ElementStress(const mesh::Points& x, int32_t e, Matrix3d* rotation, Matrix3d* strain,
-                             Matrix3d* stress, const ViscousStep* viscous) const {
-  const Matrix3d h = elements_.DisplacementGradient(x, rest_, e);  // F - I
+void FemModel::ElementStress(const Shape& sh, const mesh::Points& x, int32_t e, Matrix3d* rotation,
+                             Matrix3d* strain, Matrix3d* stress, const ViscousStep* viscous) const {
+  const Matrix3d h = DisplacementGradientOf(sh, x, e);  // F - I
   const bool has_offset = viscous != nullptr && viscous->offset != nullptr;
   if (kind_ == FemKind::kHyperelastic) {
     rotation->setIdentity();
@@ -220,29 +234,31 @@ void FemModel::ElementStress(const mesh::Points& x, int32_t e, Matrix3d* rotatio
   *stress = *rotation * sigma;
 }
 
-Matrix3d FemModel::ElasticStress(const mesh::Points& x, int32_t e) const {
+Matrix3d FemModel::ElasticStress(const Shape& sh, const mesh::Points& x, int32_t e) const {
   Matrix3d r, strain, p;
-  ElementStress(x, e, &r, &strain, &p);
+  ElementStress(sh, x, e, &r, &strain, &p);
   if (kind_ == FemKind::kHyperelastic) {  // S^e = F⁻¹ P^e
-    return (Matrix3d::Identity() + elements_.DisplacementGradient(x, rest_, e)).inverse() * p;
+    return (Matrix3d::Identity() + DisplacementGradientOf(sh, x, e)).inverse() * p;
   }
   return r.transpose() * p;  // σ^e in the rotated frame
 }
 
-double FemModel::ElasticEnergy(const mesh::Points& x, const ViscousStep* viscous) const {
+double FemModel::ElasticEnergy(const Shape& sh, const mesh::Points& x,
+                               const ViscousStep* viscous) const {
   double energy = 0.0;
   const double g = viscous != nullptr ? viscous->g : 1.0;
   const bool has_offset = viscous != nullptr && viscous->offset != nullptr;
   for (int32_t e = 0; e < num_tets(); ++e) {
-    const double v = elements_.volumes[static_cast<size_t>(e)];
+    if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
+    const double v = sh.volumes[static_cast<size_t>(e)];
     Matrix3d r, strain, p;
     double w = 0.0;
     if (kind_ == FemKind::kHyperelastic) {
-      const Matrix3d h = elements_.DisplacementGradient(x, rest_, e);
+      const Matrix3d h = DisplacementGradientOf(sh, x, e);
       w = StrainEnergy(material_, Matrix3d::Identity() + h);
       strain = 0.5 * (h + h.transpose() + h.transpose() * h);  // Green's E
     } else {
-      ElementStress(x, e, &r, &strain, &p);
+      ElementStress(sh, x, e, &r, &strain, &p);
       const double tr = strain.trace();
       w = mu_ * strain.squaredNorm() + 0.5 * lambda_ * tr * tr;
     }
@@ -290,6 +306,7 @@ ViscousStep FemModel::BeginViscousStep(const TissueState& base, double dt, doubl
 
 void FemModel::EndViscousStep(double dt, TissueState* base) const {
   auto* state = static_cast<FemState*>(base);
+  const Shape sh = ShapeOf(*state);
   const size_t m = static_cast<size_t>(num_tets()), terms = prony_.size();
   double decay[kMaxPronyTerms] = {}, weight[kMaxPronyTerms] = {};
   for (size_t k = 0; k < terms; ++k) {
@@ -298,7 +315,8 @@ void FemModel::EndViscousStep(double dt, TissueState* base) const {
     weight[k] = prony_[k].gamma * beta;
   }
   for (size_t e = 0; e < m; ++e) {
-    const Matrix3d now = ElasticStress(state->positions, static_cast<int32_t>(e));
+    if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
+    const Matrix3d now = ElasticStress(sh, state->positions, static_cast<int32_t>(e));
     Eigen::Map<Matrix3d> last(state->elastic_last.data() + 9 * e);
     for (size_t k = 0; k < terms; ++k) {
       Eigen::Map<Matrix3d> h(state->history.data() + 9 * (e * terms + k));
@@ -308,16 +326,17 @@ void FemModel::EndViscousStep(double dt, TissueState* base) const {
   }
 }
 
-void FemModel::ElasticForces(const mesh::Points& x, double* forces, double* rotations,
-                             const ViscousStep* viscous) const {
+void FemModel::ElasticForces(const Shape& sh, const mesh::Points& x, double* forces,
+                             double* rotations, const ViscousStep* viscous) const {
   std::fill(forces, forces + 3 * static_cast<size_t>(num_nodes()), 0.0);
   for (int32_t e = 0; e < num_tets(); ++e) {
+    if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
     Matrix3d r, strain, p;
-    ElementStress(x, e, &r, &strain, &p, viscous);
+    ElementStress(sh, x, e, &r, &strain, &p, viscous);
     if (rotations != nullptr) Eigen::Map<Matrix3d>(rotations + 9 * static_cast<size_t>(e)) = r;
-    const double v = elements_.volumes[static_cast<size_t>(e)];
+    const double v = sh.volumes[static_cast<size_t>(e)];
     for (int a = 0; a < 4; ++a) {
-      const Vector3d fa = -v * (p * elements_.gradients.col(4 * e + a));
+      const Vector3d fa = -v * (p * sh.gradients.col(4 * e + a));
       double* out = forces + 3 * static_cast<size_t>(elements_.tets(a, e));
       out[0] += fa.x();
       out[1] += fa.y();
@@ -524,9 +543,9 @@ __attribute__((target("avx2,fma,avx512f,avx512vl"))) void ElementPassAvx512(cons
 
 }  // namespace
 
-void FemModel::ForcesAndWarpedMatrix(const mesh::Points& x, double* forces, double* rotations,
-                                     double* quaternions, const ViscousStep* viscous,
-                                     double k_scale, double m_scale,
+void FemModel::ForcesAndWarpedMatrix(const Shape& sh, const mesh::Points& x, double* forces,
+                                     double* rotations, double* quaternions,
+                                     const ViscousStep* viscous, double k_scale, double m_scale,
                                      BlockSparseMatrix* matrix) const {
   assert(kind_ != FemKind::kHyperelastic);
   const auto m = static_cast<size_t>(num_tets());
@@ -534,10 +553,10 @@ void FemModel::ForcesAndWarpedMatrix(const mesh::Points& x, double* forces, doub
   matrix->SetZero();
   WarpedPass pass{};
   pass.x = x.data();
-  pass.rest = rest_.data();
+  pass.rest = sh.rest.data();
   pass.tets = elements_.tets.data();
-  pass.gradients = elements_.gradients.data();
-  pass.volumes = elements_.volumes.data();
+  pass.gradients = sh.gradients.data();
+  pass.volumes = sh.volumes.data();
   pass.rotations = rotations;
   pass.offset = viscous != nullptr ? viscous->offset : nullptr;
   pass.element_blocks = matrix->element_blocks();
@@ -581,16 +600,17 @@ void FemModel::ForcesAndWarpedMatrix(const mesh::Points& x, double* forces, doub
   }
 }
 
-void FemModel::AssembleWarped(const mesh::Points& x, const double* rotations, double scale,
-                              double mass_scale, BlockSparseMatrix* matrix,
+void FemModel::AssembleWarped(const Shape& sh, const mesh::Points& x, const double* rotations,
+                              double scale, double mass_scale, BlockSparseMatrix* matrix,
                               const ViscousStep* viscous) const {
   matrix->SetZero();
   // A viscous step's effective stiffness is g times the elastic one (hyperelastic: plus the
   // offset's geometric term, inside ElementTangent).
   if (viscous != nullptr && kind_ != FemKind::kHyperelastic) scale *= viscous->g;
   for (int32_t e = 0; e < num_tets(); ++e) {
+    if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
     if (kind_ == FemKind::kHyperelastic) {  // the exact tangent: there is no rotated one
-      const Eigen::Matrix<double, 12, 12> k = ElementTangent(x, e, true, viscous);
+      const Eigen::Matrix<double, 12, 12> k = ElementTangentOf(sh, x, e, true, viscous);
       for (int a = 0; a < 4; ++a) {
         for (int b = 0; b < 4; ++b) {
           if (matrix->element_block(e, a, b) < 0) continue;
@@ -604,13 +624,13 @@ void FemModel::AssembleWarped(const mesh::Points& x, const double* rotations, do
     // r_a = R ∇N_a (RestBlock's formula in the rotated frame; r_a·r_b = ∇N_a·∇N_b): 16 outer
     // products instead of 32 3×3 matrix products.
     const double* rot = rotations + 9 * static_cast<size_t>(e);  // column-major
-    const double* grad = elements_.gradients.data() + 12 * static_cast<size_t>(e);
+    const double* grad = sh.gradients.data() + 12 * static_cast<size_t>(e);
     double r[4][3];
     for (int a = 0; a < 4; ++a) {
       const double* g = grad + 3 * a;
       for (int i = 0; i < 3; ++i) r[a][i] = rot[i] * g[0] + rot[3 + i] * g[1] + rot[6 + i] * g[2];
     }
-    const double v = scale * elements_.volumes[static_cast<size_t>(e)];
+    const double v = scale * sh.volumes[static_cast<size_t>(e)];
     const double cl = v * lambda_, cm = v * mu_;
     for (int a = 0; a < 4; ++a) {
       for (int b = 0; b < 4; ++b) {
@@ -637,17 +657,23 @@ void FemModel::AssembleWarped(const mesh::Points& x, const double* rotations, do
 
 Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, int32_t e, bool exact,
                                                        const ViscousStep* viscous) const {
+  return ElementTangentOf(ModelShape(), x, e, exact, viscous);
+}
+
+Eigen::Matrix<double, 12, 12> FemModel::ElementTangentOf(const Shape& sh, const mesh::Points& x,
+                                                         int32_t e, bool exact,
+                                                         const ViscousStep* viscous) const {
   Eigen::Matrix<double, 12, 12> k;
   Matrix3d r = Matrix3d::Identity(), strain = Matrix3d::Zero(), p = Matrix3d::Zero();
   // The stress enters the linear and corotational tangents only (the hyperelastic one is dP).
-  if (kind_ != FemKind::kHyperelastic) ElementStress(x, e, &r, &strain, &p, viscous);
+  if (kind_ != FemKind::kHyperelastic) ElementStress(sh, x, e, &r, &strain, &p, viscous);
   // A viscous step scales the elastic response by g and adds a constant offset stress:
   // hyperelastic dP = g dP^e + dF offset; rotated frame d(R (g σ + offset)).
   const double g = viscous != nullptr ? viscous->g : 1.0;
   const bool has_offset = viscous != nullptr && viscous->offset != nullptr;
   if (kind_ == FemKind::kHyperelastic) {
-    const Matrix3d f = Matrix3d::Identity() + elements_.DisplacementGradient(x, rest_, e);
-    const double v = elements_.volumes[static_cast<size_t>(e)];
+    const Matrix3d f = Matrix3d::Identity() + DisplacementGradientOf(sh, x, e);
+    const double v = sh.volumes[static_cast<size_t>(e)];
     const StressPoint point = PrepareStressDifferential(material_, f);  // once for 12 dF
     if (material_.law == HyperelasticLaw::kReducedPolynomial) {
       // dF = e_c ∇N_bᵀ is rank one, so StressDifferential's terms applied to ∇N_a reduce to
@@ -658,7 +684,7 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
       // of a 3 × 3 differential).
       Vector3d ga[4], aa[4], qa[4], pa[4];
       for (int a = 0; a < 4; ++a) {
-        ga[a] = elements_.gradients.col(4 * e + a);
+        ga[a] = sh.gradients.col(4 * e + a);
         aa[a] = point.a * ga[a];
         qa[a] = point.f_inv_t * ga[a];
         pa[a] = f * ga[a];
@@ -691,7 +717,7 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
       return k;
     }
     for (int b = 0; b < 4; ++b) {
-      const Vector3d gb = elements_.gradients.col(4 * e + b);
+      const Vector3d gb = sh.gradients.col(4 * e + b);
       for (int c = 0; c < 3; ++c) {
         const Matrix3d df = Vector3d::Unit(c) * gb.transpose();
         Matrix3d dp = g * StressDifferential(point, df);
@@ -699,7 +725,7 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
           dp += df * Eigen::Map<const Matrix3d>(viscous->offset + 9 * static_cast<size_t>(e));
         }
         for (int a = 0; a < 4; ++a) {
-          k.block<3, 1>(3 * a, 3 * b + c) = v * (dp * elements_.gradients.col(4 * e + a));
+          k.block<3, 1>(3 * a, 3 * b + c) = v * (dp * sh.gradients.col(4 * e + a));
         }
       }
     }
@@ -708,12 +734,12 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
   if (!exact) {
     for (int a = 0; a < 4; ++a) {
       for (int b = 0; b < 4; ++b) {
-        k.block<3, 3>(3 * a, 3 * b) = g * (r * RestBlock(e, a, b) * r.transpose());
+        k.block<3, 3>(3 * a, 3 * b) = g * (r * RestBlock(sh, e, a, b) * r.transpose());
       }
     }
     return k;
   }
-  const double v = elements_.volumes[static_cast<size_t>(e)];
+  const double v = sh.volumes[static_cast<size_t>(e)];
   const Matrix3d sigma = r.transpose() * p;          // g σ(ε) + offset
   const Matrix3d s = strain + Matrix3d::Identity();  // Rᵀ F, symmetrised
   // dP for dF: linear, dP = σ(sym dF); corotational, P = R σ(S - I) with dR = R [ω]×, where
@@ -721,7 +747,7 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
   const Matrix3d t = s.trace() * Matrix3d::Identity() - s;
   const Eigen::FullPivLU<Matrix3d> t_lu(t);
   for (int b = 0; b < 4; ++b) {
-    const Vector3d gb = elements_.gradients.col(4 * e + b);
+    const Vector3d gb = sh.gradients.col(4 * e + b);
     for (int c = 0; c < 3; ++c) {
       const Matrix3d df = Vector3d::Unit(c) * gb.transpose();
       Matrix3d dp;
@@ -738,7 +764,7 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
         dp = r * (Skew(omega) * sigma + g * dsigma);
       }
       for (int a = 0; a < 4; ++a) {
-        k.block<3, 1>(3 * a, 3 * b + c) = v * (dp * elements_.gradients.col(4 * e + a));
+        k.block<3, 1>(3 * a, 3 * b + c) = v * (dp * sh.gradients.col(4 * e + a));
       }
     }
   }
@@ -747,7 +773,8 @@ Eigen::Matrix<double, 12, 12> FemModel::ElementTangent(const mesh::Points& x, in
 
 void FemModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
   forces->resize(3, num_nodes());
-  ElasticForces(state.positions, forces->data(), nullptr);
+  const Shape sh = ShapeOf(state);
+  ElasticForces(sh, state.positions, forces->data(), nullptr);
   if (rayleigh_mass_ > 0.0 || rayleigh_stiffness_ > 0.0) {
     // -C v = -α M v - β K v, K the warped stiffness at the state.
     for (int32_t i = 0; i < num_nodes(); ++i) {
@@ -755,7 +782,8 @@ void FemModel::InternalForces(const TissueState& state, mesh::Points* forces) co
     }
     if (rayleigh_stiffness_ > 0.0) {
       for (int32_t e = 0; e < num_tets(); ++e) {
-        const Eigen::Matrix<double, 12, 12> k = ElementTangent(state.positions, e, false);
+        if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
+        const Eigen::Matrix<double, 12, 12> k = ElementTangentOf(sh, state.positions, e, false);
         for (int a = 0; a < 4; ++a) {
           Vector3d kv = Vector3d::Zero();
           for (int b = 0; b < 4; ++b) {
@@ -770,33 +798,155 @@ void FemModel::InternalForces(const TissueState& state, mesh::Points* forces) co
 
 EnergyReport FemModel::Energy(const TissueState& state, const Eigen::Vector3d& gravity) const {
   EnergyReport report;
-  report.elastic = ElasticEnergy(state.positions, nullptr);
+  report.elastic = ElasticEnergy(ShapeOf(state), state.positions, nullptr);
   AddKineticAndGravity(mass_, state, gravity, &report);
   return report;
 }
 
 Eigen::Matrix3d FemModel::LocalStiffness(const TissueState& state, int32_t node) const {
   assert(node >= 0 && node < num_nodes());
+  const Shape sh = ShapeOf(state);
   Matrix3d k = Matrix3d::Zero();
   for (int32_t k_index = elements_.node_start[static_cast<size_t>(node)];
        k_index < elements_.node_start[static_cast<size_t>(node) + 1]; ++k_index) {
     const int32_t packed = elements_.element_of_node[static_cast<size_t>(k_index)];
     const int32_t e = packed / 4;
+    if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
     const int a = packed % 4;
     if (kind_ == FemKind::kHyperelastic) {
-      k += ElementTangent(state.positions, e, true).block<3, 3>(3 * a, 3 * a);
+      k += ElementTangentOf(sh, state.positions, e, true).block<3, 3>(3 * a, 3 * a);
       continue;
     }
     Matrix3d r = Matrix3d::Identity();
     if (kind_ == FemKind::kCorotational) {  // from the element's rotation in the last step
       const double* last = static_cast<const FemState&>(state).quaternions.data() + 4 * e;
       double q[4] = {last[0], last[1], last[2], last[3]};
-      r = PolarRotationFrom(
-          Matrix3d::Identity() + elements_.DisplacementGradient(state.positions, rest_, e), q);
+      r = PolarRotationFrom(Matrix3d::Identity() + DisplacementGradientOf(sh, state.positions, e),
+                            q);
     }
-    k += r * RestBlock(e, a, a) * r.transpose();
+    k += r * RestBlock(sh, e, a, a) * r.transpose();
   }
   return k;
+}
+
+FemModel::Shape FemModel::ShapeOf(const TissueState& base) const {
+  const auto& state = static_cast<const FemState&>(base);
+  return {state.rest, state.gradients, state.volumes, elements_.tets};
+}
+
+Matrix3d FemModel::DisplacementGradientOf(const Shape& sh, const mesh::Points& x, int32_t e) {
+  Matrix3d h = Matrix3d::Zero();
+  for (int a = 0; a < 4; ++a) {
+    const int32_t node = sh.tets(a, e);
+    h.noalias() += (x.col(node) - sh.rest.col(node)) * sh.gradients.col(4 * e + a).transpose();
+  }
+  return h;
+}
+
+bool FemModel::ElementAlive(const TissueState& state, int32_t e) const {
+  assert(e >= 0 && e < num_tets());
+  return static_cast<const FemState&>(state).volumes[static_cast<size_t>(e)] > 0.0;
+}
+
+const mesh::Points& FemModel::RestPositions(const TissueState& state) const {
+  return static_cast<const FemState&>(state).rest;
+}
+
+namespace {
+
+// Element e's rest gradients (3 × 4, column a = ∇N_a) and volume from the rest positions:
+// with D = [X1 - X0, X2 - X0, X3 - X0], ∇N_1..3 are the columns of D⁻ᵀ and ∇N_0 = -Σ; V =
+// det D / 6. False (nothing written) when det D <= 0.
+bool RestGeometry(const mesh::Points& rest, const mesh::Tetrahedra& tets, int32_t e,
+                  Eigen::Matrix<double, 3, 4>* gradients, double* volume) {
+  Matrix3d d;
+  for (int c = 0; c < 3; ++c) d.col(c) = rest.col(tets(c + 1, e)) - rest.col(tets(0, e));
+  const double det = d.determinant();
+  if (!(det > 0.0)) return false;
+  const Matrix3d inv_t = d.inverse().transpose();
+  gradients->rightCols<3>() = inv_t;
+  gradients->col(0) = -inv_t.rowwise().sum();
+  *volume = det / 6.0;
+  return true;
+}
+
+}  // namespace
+
+void FemModel::ApplyCut(std::span<const int32_t> removed, std::span<const int32_t> moved,
+                        const mesh::Points& positions_before, TissueState* base) const {
+  auto* state = static_cast<FemState*>(base);
+  const int32_t n = num_nodes(), m = num_tets();
+  for (const int32_t e : removed) {
+    if (e < 0 || e >= m) Refuse("cut: element " + std::to_string(e) + " out of range");
+    if (!(state->volumes[static_cast<size_t>(e)] > 0.0)) {
+      Refuse("cut: element " + std::to_string(e) + " was already cut away");
+    }
+  }
+  for (const int32_t node : moved) {
+    if (node < 0 || node >= n) Refuse("cut: node " + std::to_string(node) + " out of range");
+  }
+  if (positions_before.cols() != n || !positions_before.allFinite()) {
+    Refuse("cut: positions before the cut must be 3 x num_nodes and finite");
+  }
+  for (const int32_t e : removed) {
+    state->volumes[static_cast<size_t>(e)] = 0.0;
+    ++state->num_cut;
+  }
+  // The rest moves, all from the geometry before any of them (F̄ at positions_before).
+  for (const int32_t node : moved) {
+    Matrix3d f_sum = Matrix3d::Zero();
+    int count = 0;
+    const Shape sh = ShapeOf(*state);
+    for (int32_t k = elements_.node_start[static_cast<size_t>(node)];
+         k < elements_.node_start[static_cast<size_t>(node) + 1]; ++k) {
+      const int32_t e = elements_.element_of_node[static_cast<size_t>(k)] / 4;
+      if (!(state->volumes[static_cast<size_t>(e)] > 0.0)) continue;
+      f_sum += Matrix3d::Identity() + DisplacementGradientOf(sh, positions_before, e);
+      ++count;
+    }
+    const Vector3d dx = state->positions.col(node) - positions_before.col(node);
+    Vector3d dr = dx;
+    if (count > 0) {
+      const Matrix3d f = f_sum / count;
+      const double det = f.determinant();
+      if (det > 0.1 && std::isfinite(det)) dr = f.inverse() * dx;
+    }
+    state->rest_move.col(node) = dr.allFinite() ? dr : dx;
+  }
+  // Apply each node's rest move, shortened until its alive elements keep 5 % of their
+  // original volume; then their gradients and volumes follow.
+  for (const int32_t node : moved) {
+    const Vector3d from = state->rest.col(node);
+    Vector3d step = state->rest_move.col(node);
+    bool accepted = false;
+    for (int attempt = 0; attempt <= 8 && !accepted; ++attempt, step *= 0.5) {
+      state->rest.col(node) = from + step;
+      accepted = true;
+      for (int32_t k = elements_.node_start[static_cast<size_t>(node)];
+           accepted && k < elements_.node_start[static_cast<size_t>(node) + 1]; ++k) {
+        const int32_t e = elements_.element_of_node[static_cast<size_t>(k)] / 4;
+        if (!(state->volumes[static_cast<size_t>(e)] > 0.0)) continue;
+        Eigen::Matrix<double, 3, 4> g;
+        double v = 0.0;
+        accepted = RestGeometry(state->rest, elements_.tets, e, &g, &v) &&
+                   v >= 0.05 * elements_.volumes[static_cast<size_t>(e)];
+      }
+    }
+    if (!accepted) state->rest.col(node) = from;
+    for (int32_t k = elements_.node_start[static_cast<size_t>(node)];
+         k < elements_.node_start[static_cast<size_t>(node) + 1]; ++k) {
+      const int32_t e = elements_.element_of_node[static_cast<size_t>(k)] / 4;
+      if (!(state->volumes[static_cast<size_t>(e)] > 0.0)) continue;
+      Eigen::Matrix<double, 3, 4> g;
+      double v = 0.0;
+      if (RestGeometry(state->rest, elements_.tets, e, &g, &v)) {
+        state->gradients.middleCols<4>(4 * static_cast<Eigen::Index>(e)) = g;
+        state->volumes[static_cast<size_t>(e)] = v;
+      }
+    }
+    double* good = LastGoodPositions(state);
+    for (int c = 0; c < 3; ++c) good[3 * static_cast<size_t>(node) + c] = state->positions(c, node);
+  }
 }
 
 double FemModel::LastSolverResidual(const TissueState& state) const {
@@ -805,6 +955,7 @@ double FemModel::LastSolverResidual(const TissueState& state) const {
 
 void FemModel::Advance(const StepInputs& inputs, TissueState* base) const {
   auto* state = static_cast<FemState*>(base);
+  const Shape sh = ShapeOf(*state);
   const double dt = inputs.dt;
   const auto n = static_cast<size_t>(num_nodes());
   const double alpha = rayleigh_mass_, beta = rayleigh_stiffness_;
@@ -816,11 +967,11 @@ void FemModel::Advance(const StepInputs& inputs, TissueState* base) const {
   const double k_scale = dt * dt + dt * beta;
   const double m_scale = 1.0 + dt * alpha;
   if (kind_ == FemKind::kHyperelastic) {
-    ElasticForces(state->positions, state->forces.data(), state->rotations.data(), visc);
-    AssembleWarped(state->positions, state->rotations.data(), k_scale, m_scale, &state->matrix,
+    ElasticForces(sh, state->positions, state->forces.data(), state->rotations.data(), visc);
+    AssembleWarped(sh, state->positions, state->rotations.data(), k_scale, m_scale, &state->matrix,
                    visc);
   } else {  // one pass over the elements for both
-    ForcesAndWarpedMatrix(state->positions, state->forces.data(), state->rotations.data(),
+    ForcesAndWarpedMatrix(sh, state->positions, state->forces.data(), state->rotations.data(),
                           state->quaternions.data(), visc, k_scale, m_scale, &state->matrix);
   }
   // K v = (A v - m_scale M v) / k_scale (before the grasps join A: they have no damping).
@@ -949,14 +1100,15 @@ StaticResult FemModel::SolveQuasiStatic(const StaticLoads& loads, double dt, Tis
 
 void FemModel::AssembleTangent(const mesh::Points& x, BlockSparseMatrix* matrix) const {
   if (matrix->num_blocks() != pattern_.num_blocks()) *matrix = pattern_;
-  AssembleExact(x, matrix, nullptr);
+  AssembleExact(ModelShape(), x, matrix, nullptr);
 }
 
-void FemModel::AssembleExact(const mesh::Points& x, BlockSparseMatrix* matrix,
+void FemModel::AssembleExact(const Shape& sh, const mesh::Points& x, BlockSparseMatrix* matrix,
                              const ViscousStep* viscous) const {
   matrix->SetZero();
   for (int32_t e = 0; e < num_tets(); ++e) {
-    const Eigen::Matrix<double, 12, 12> ke = ElementTangent(x, e, true, viscous);
+    if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
+    const Eigen::Matrix<double, 12, 12> ke = ElementTangentOf(sh, x, e, true, viscous);
     for (int a = 0; a < 4; ++a) {
       for (int b = 0; b < 4; ++b) {
         matrix->block(matrix->element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
@@ -968,6 +1120,7 @@ void FemModel::AssembleExact(const mesh::Points& x, BlockSparseMatrix* matrix,
 StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* state,
                                        const ViscousStep* viscous, StaticWorkspace* workspace,
                                        bool single_iteration) const {
+  const Shape sh = ShapeOf(*state);
   const auto n = static_cast<size_t>(num_nodes());
   StaticWorkspace local;
   if (workspace == nullptr) workspace = &local;
@@ -1043,7 +1196,7 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
   mesh::Points forces(3, num_nodes());
   // Free-DOF norm of r = f(x) + scale · load.
   const auto residual = [&](double scale, Eigen::VectorXd* r) {
-    ElasticForces(state->positions, forces.data(), nullptr, viscous);
+    ElasticForces(sh, state->positions, forces.data(), nullptr, viscous);
     r->setZero(num_dofs);
     double load_norm2 = 0.0;
     for (size_t k = 0; k < 3 * n; ++k) {
@@ -1055,9 +1208,9 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
     return std::sqrt(load_norm2);
   };
   const auto potential = [&](double scale) {
-    double value = ElasticEnergy(state->positions, viscous);
+    double value = ElasticEnergy(sh, state->positions, viscous);
     for (Eigen::Index k = 0; k < load.size(); ++k) {
-      value -= scale * load.data()[k] * (state->positions.data()[k] - rest_.data()[k]);
+      value -= scale * load.data()[k] * (state->positions.data()[k] - sh.rest.data()[k]);
     }
     return value;
   };
@@ -1072,8 +1225,9 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
       if (attempt == 1) {  // the rotated (warped) tangent, positive semi-definite
         tangent.SetZero();
         for (int32_t e = 0; e < num_tets(); ++e) {
+          if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
           const Eigen::Matrix<double, 12, 12> ke =
-              ElementTangent(state->positions, e, false, viscous);
+              ElementTangentOf(sh, state->positions, e, false, viscous);
           for (int a = 0; a < 4; ++a) {
             for (int b = 0; b < 4; ++b) {
               tangent.block(tangent.element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
@@ -1081,7 +1235,7 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
           }
         }
       } else {
-        AssembleExact(attempt == 2 ? rest_ : state->positions, &tangent, viscous);
+        AssembleExact(sh, attempt == 2 ? sh.rest : state->positions, &tangent, viscous);
       }
       tangent.FillScalarLower(ws.k_source, &ws.k_free);
       if (!ws.analysed) {
@@ -1104,7 +1258,7 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
     const double scale = static_cast<double>(step) / load_steps;
     // This step's Dirichlet values (they move in increments too), as an increment d.
     mesh::Points target = state->positions;
-    for (const int32_t node : loads.fixed_nodes) target.col(node) = rest_.col(node);
+    for (const int32_t node : loads.fixed_nodes) target.col(node) = sh.rest.col(node);
     for (size_t k = 0; k < loads.prescribed_nodes.size(); ++k) {
       const int32_t node = loads.prescribed_nodes[k];
       const Eigen::Index kk = static_cast<Eigen::Index>(k);
@@ -1210,7 +1364,7 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
       r_norm = r_new_norm;
       double u_norm2 = 0.0;
       for (size_t k = 0; k < 3 * n; ++k) {
-        const double u = state->positions.data()[k] - rest_.data()[k];
+        const double u = state->positions.data()[k] - sh.rest.data()[k];
         u_norm2 += u * u;
       }
       small_step = t * du.norm() <= loads.step_tolerance * std::sqrt(u_norm2);

@@ -203,6 +203,30 @@ class FemModel final : public TissueModel {
                                                const ViscousStep* viscous = nullptr) const;
   size_t num_prony_terms() const { return prony_.size(); }
 
+  // Cutting (SPEC §5.3, seed 003; cutting::TetCutter decides what is cut, the server's session
+  // calls this after each blade step). The cut is part of the state — its own copy of the rest
+  // geometry (rest positions, shape-function gradients, volumes), made by MakeState — so the
+  // model stays read-only and a snapshot carries the cut; a rejected step does not undo it.
+  //  - `removed` elements (each in [0, num_tets), alive) leave the assembly: their volume in the
+  //    state becomes 0, so they add no force, stiffness or energy (masses stay: the lumped mass
+  //    of the organ is conserved, as the vertices are);
+  //  - `moved` nodes were relocated in state->positions from `positions_before` (3 × num_nodes,
+  //    the positions the cutter started from). Their rest positions follow, pulled back through
+  //    the mean deformation gradient F̄ of their alive elements (ΔX = F̄⁻¹ Δx, first order; Δx
+  //    itself where F̄ is near singular), so the relocation adds no strain; a rest move that
+  //    would take an alive element below 5 % of its original rest volume is halved (up to 8
+  //    times, then dropped), so no element is ever inverted at rest. The alive elements around
+  //    a moved node get their gradients and volumes from the new rest positions, and the
+  //    rollback copy of the positions takes the relocated ones.
+  // Allocates nothing. Throws std::invalid_argument (before changing anything) for an index out
+  // of range, an element already removed, or positions of the wrong size or not finite.
+  void ApplyCut(std::span<const int32_t> removed, std::span<const int32_t> moved,
+                const mesh::Points& positions_before, TissueState* state) const;
+  // Whether element e is still in the state's assembly (not cut away).
+  bool ElementAlive(const TissueState& state, int32_t e) const;
+  // The state's rest positions [m] (3 × num_nodes): the model's until a cut relocates nodes.
+  const mesh::Points& RestPositions(const TissueState& state) const;
+
   // The relative residual |b - A Δv| / |b| CG reached in the state's last step.
   double LastSolverResidual(const TissueState& state) const;
 
@@ -217,22 +241,38 @@ class FemModel final : public TissueModel {
 
  private:
   FemModel() = default;
+  // The rest geometry a computation uses: the model's (ModelShape), or a state's (ShapeOf: a
+  // cut state's own copy). Topology (tets, node lists) is always the model's.
+  struct Shape {
+    const mesh::Points& rest;                                   // 3 × num_nodes [m]
+    const Eigen::Matrix<double, 3, Eigen::Dynamic>& gradients;  // 3 × 4·num_tets [1/m]
+    const std::vector<double>& volumes;                         // num_tets [m³], 0 = cut away
+    const mesh::Tetrahedra& tets;
+  };
+  Shape ModelShape() const {
+    return {rest_, elements_.gradients, elements_.volumes, elements_.tets};
+  }
+  Shape ShapeOf(const TissueState& state) const;
+  static Eigen::Matrix3d DisplacementGradientOf(const Shape& sh, const mesh::Points& x, int32_t e);
+  Eigen::Matrix<double, 12, 12> ElementTangentOf(const Shape& sh, const mesh::Points& x, int32_t e,
+                                                 bool exact,
+                                                 const ViscousStep* viscous = nullptr) const;
   // Element e's rotation at x (identity for the linear and hyperelastic models), its strain ε
   // (symmetric; zero for the hyperelastic model, whose callers do not need it) and the first
   // Piola–Kirchhoff stress P [Pa]. The corotational rotation is PolarRotationFrom's from the
   // identity.
-  void ElementStress(const mesh::Points& x, int32_t e, Eigen::Matrix3d* rotation,
+  void ElementStress(const Shape& sh, const mesh::Points& x, int32_t e, Eigen::Matrix3d* rotation,
                      Eigen::Matrix3d* strain, Eigen::Matrix3d* stress,
                      const ViscousStep* viscous = nullptr) const;
   // forces (3 × num_nodes) = elastic forces at x; also stores the element rotations (9 ×
   // num_tets) when `rotations` is given.
-  void ElasticForces(const mesh::Points& x, double* forces, double* rotations,
+  void ElasticForces(const Shape& sh, const mesh::Points& x, double* forces, double* rotations,
                      const ViscousStep* viscous = nullptr) const;
   // The elastic energy at x; with a viscous context, the potential whose gradient is the
   // viscous step's forces (hyperelastic: Σ V (g W + offset : E)).
-  double ElasticEnergy(const mesh::Points& x, const ViscousStep* viscous) const;
+  double ElasticEnergy(const Shape& sh, const mesh::Points& x, const ViscousStep* viscous) const;
   // The elastic stress S^e of element e at x (see ViscousStep), 3 × 3.
-  Eigen::Matrix3d ElasticStress(const mesh::Points& x, int32_t e) const;
+  Eigen::Matrix3d ElasticStress(const Shape& sh, const mesh::Points& x, int32_t e) const;
   // The viscous context for a step of dt from the state's internal variables (into `offset`,
   // 9 × num_tets), and the update of the internal variables once the step is accepted.
   ViscousStep BeginViscousStep(const TissueState& state, double dt, double* offset) const;
@@ -243,20 +283,20 @@ class FemModel final : public TissueModel {
   // Assembles Σ_e R_e K_e R_eᵀ (rotations 9 × num_tets, or identity for the linear model; the
   // exact tangent at x for the hyperelastic one) scaled by `scale` into `matrix` (zeroed
   // first), then adds mass_scale · M on the diagonal.
-  void AssembleWarped(const mesh::Points& x, const double* rotations, double scale,
+  void AssembleWarped(const Shape& sh, const mesh::Points& x, const double* rotations, double scale,
                       double mass_scale, BlockSparseMatrix* matrix,
                       const ViscousStep* viscous = nullptr) const;
   // Σ_e ElementTangent(x, e, true, viscous) into `matrix` (zeroed first).
-  void AssembleExact(const mesh::Points& x, BlockSparseMatrix* matrix,
+  void AssembleExact(const Shape& sh, const mesh::Points& x, BlockSparseMatrix* matrix,
                      const ViscousStep* viscous) const;
   // Linear and corotational Step: ElasticForces and AssembleWarped fused into one pass over the
   // elements (equal up to rounding), the rotations decomposed first in batches (PolarRotations),
   // each warm-started from `quaternions` (4 × num_tets: the last step's, updated).
-  void ForcesAndWarpedMatrix(const mesh::Points& x, double* forces, double* rotations,
-                             double* quaternions, const ViscousStep* viscous, double k_scale,
-                             double m_scale, BlockSparseMatrix* matrix) const;
+  void ForcesAndWarpedMatrix(const Shape& sh, const mesh::Points& x, double* forces,
+                             double* rotations, double* quaternions, const ViscousStep* viscous,
+                             double k_scale, double m_scale, BlockSparseMatrix* matrix) const;
   // The undeformed element stiffness block K_ab = V (λ ∇N_a ∇N_bᵀ + μ ∇N_b ∇N_aᵀ + μ ∇N_a·∇N_b I).
-  Eigen::Matrix3d RestBlock(int32_t e, int a, int b) const;
+  Eigen::Matrix3d RestBlock(const Shape& sh, int32_t e, int a, int b) const;
 
   mesh::Points rest_;  // [m], 3 × num_nodes
   TetElements elements_;
