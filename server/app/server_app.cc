@@ -112,6 +112,8 @@ const char* EventText(SessionEventRecord::Kind kind) {
       return "force model refused";
     case SessionEventRecord::Kind::kReset:
       return "reset";
+    case SessionEventRecord::Kind::kCut:
+      return "cut";
   }
   return "event";
 }

@@ -141,7 +141,6 @@ TetCutter::TetCutter(const mesh::Tetrahedra& tets, const mesh::Points& positions
   stamp_.assign(static_cast<size_t>(num_nodes_), 0);
   losing_.assign(static_cast<size_t>(num_nodes_), 0);
   volume_before_.assign(num_tets, 0.0);
-  surface_scratch_.reserve(4 * num_tets);
 }
 
 void TetCutter::BeginIncision() {
@@ -186,20 +185,7 @@ Vector3d TetCutter::Relocate(int32_t node, const Vector3d& v, const Vector3d& n,
   // has passed it (projected onto the blade's line, it would join the two sides of the wound
   // behind the blade for good, since no vertex may be added to split it).
   const auto nearest_boundary = [&](const Vector3d& y, Vector3d* a, Vector3d* b) {
-    double best = (ClosestOnSegment(y, sweep.p1, sweep.q1) - y).squaredNorm();
-    bool tip = false;
-    const int32_t count = std::min(num_quads_, kHistory);
-    for (int32_t i = 0; i < count; ++i) {
-      const models::SweptQuad& s = quads_[static_cast<size_t>((num_quads_ - 1 - i) % kHistory)];
-      const double d = (ClosestOnSegment(y, s.p0, s.p1) - y).squaredNorm();
-      if (d < best) {
-        best = d;
-        *a = s.p0;
-        *b = s.p1;
-        tip = true;
-      }
-    }
-    return tip;
+    return NearestIsTipPath(y, sweep, a, b);
   };
   if (on_surface_[static_cast<size_t>(node)] == 0) {
     // Seed 003 eq. 1: onto the sweep's plane; eq. 2: outside the swept region, onto its boundary.
@@ -227,6 +213,24 @@ Vector3d TetCutter::Relocate(int32_t node, const Vector3d& v, const Vector3d& n,
   Vector3d a, b;
   if (!nearest_boundary(x0, &a, &b)) return v;
   return x0 + LineParameterNearestSegment(x0, u, a, b) * u;
+}
+
+bool TetCutter::NearestIsTipPath(const Vector3d& y, const models::SweptQuad& sweep, Vector3d* a,
+                                 Vector3d* b) const {
+  double best = (ClosestOnSegment(y, sweep.p1, sweep.q1) - y).squaredNorm();
+  bool tip = false;
+  const int32_t count = std::min(num_quads_, kHistory);
+  for (int32_t i = 0; i < count; ++i) {
+    const models::SweptQuad& s = quads_[static_cast<size_t>((num_quads_ - 1 - i) % kHistory)];
+    const double d = (ClosestOnSegment(y, s.p0, s.p1) - y).squaredNorm();
+    if (d < best) {
+      best = d;
+      *a = s.p0;
+      *b = s.p1;
+      tip = true;
+    }
+  }
+  return tip;
 }
 
 bool TetCutter::Remove(int32_t t) {
@@ -505,7 +509,9 @@ CutStepResult TetCutter::Step(const models::SweptQuad& sweep, mesh::Points* posi
   result.cut = static_cast<int32_t>(cut_.size());
   if (cut_.empty()) return result;
   // Severed: every edge from one side of the sweep's plane to the other crosses it within the
-  // swept region (the wound opens behind the blade, never ahead of it). The others wait.
+  // swept region, or below the tip's path (nearer to it than to the blade: the bottom of a
+  // partial-depth cut, whose vertices eq. 2 brings up onto the tip's path) — so the wound opens
+  // behind the blade, never ahead of it. The others wait.
   pending_count_ = 0;
   size_t severed = 0;
   for (const int32_t t : cut_) {
@@ -514,7 +520,10 @@ CutStepResult TetCutter::Step(const models::SweptQuad& sweep, mesh::Points* posi
       const Vector3d a = x.col(tets_(e[0], t)), b = x.col(tets_(e[1], t));
       const double da = n.dot(a - sweep.p1), db = n.dot(b - sweep.p1);
       if (!((da > tolerance && db < -tolerance) || (da < -tolerance && db > tolerance))) continue;
-      if (!InsideSwept(a + (da / (da - db)) * (b - a), inside_tolerance)) {
+      const Vector3d crossing = a + (da / (da - db)) * (b - a);
+      Vector3d s0, s1;
+      if (!InsideSwept(crossing, inside_tolerance) &&
+          !NearestIsTipPath(crossing, sweep, &s0, &s1)) {
         all = false;
         break;
       }
@@ -659,20 +668,30 @@ CutStepResult TetCutter::Step(const models::SweptQuad& sweep, mesh::Points* posi
 }
 
 void TetCutter::ExtractSurface(mesh::Triangles* triangles, std::vector<uint8_t>* inner) const {
-  surface_scratch_.clear();
+  ExtractSurface(alive_, triangles, inner);
+}
+
+void TetCutter::ExtractSurface(std::span<const uint8_t> alive, mesh::Triangles* triangles,
+                               std::vector<uint8_t>* inner) const {
+  if (alive.size() != alive_.size()) {
+    throw std::invalid_argument("cut surface: " + std::to_string(alive.size()) +
+                                " alive flags for " + std::to_string(alive_.size()) +
+                                " tetrahedra");
+  }
+  std::vector<int32_t> faces;  // 4 t + f
   for (Eigen::Index t = 0; t < tets_.cols(); ++t) {
-    if (alive_[static_cast<size_t>(t)] == 0) continue;
+    if (alive[static_cast<size_t>(t)] == 0) continue;
     for (int f = 0; f < 4; ++f) {
       const int32_t nb = neighbours_(f, t);
-      if (nb >= 0 && alive_[static_cast<size_t>(nb)] != 0) continue;
-      surface_scratch_.push_back(static_cast<int32_t>(4 * t + f));
+      if (nb >= 0 && alive[static_cast<size_t>(nb)] != 0) continue;
+      faces.push_back(static_cast<int32_t>(4 * t + f));
     }
   }
-  triangles->resize(3, static_cast<Eigen::Index>(surface_scratch_.size()));
-  inner->resize(surface_scratch_.size());
-  for (size_t i = 0; i < surface_scratch_.size(); ++i) {
-    const int32_t t = surface_scratch_[i] / 4;
-    const int f = surface_scratch_[i] % 4;
+  triangles->resize(3, static_cast<Eigen::Index>(faces.size()));
+  inner->resize(faces.size());
+  for (size_t i = 0; i < faces.size(); ++i) {
+    const int32_t t = faces[i] / 4;
+    const int f = faces[i] % 4;
     for (int k = 0; k < 3; ++k)
       (*triangles)(k, static_cast<Eigen::Index>(i)) = tets_(kTetFaces[f][k], t);
     (*inner)[i] = neighbours_(f, t) >= 0 ? 1 : 0;

@@ -97,6 +97,11 @@ class TetCutter {
   // an inner face (exposed by a removal), else 0. For the topology's republication after a cut,
   // not for the step: it sizes its outputs.
   void ExtractSurface(mesh::Triangles* triangles, std::vector<uint8_t>* inner) const;
+  // The same for other alive flags (num_tets of them, 1 = alive): a copy the cutting thread
+  // handed over. Touches no scratch of the cutter, so another thread may call it while this
+  // cutter is idle or on a different instance.
+  void ExtractSurface(std::span<const uint8_t> alive, mesh::Triangles* triangles,
+                      std::vector<uint8_t>* inner) const;
 
   // Whether node is on the original outer surface.
   bool on_surface(int32_t node) const { return on_surface_[static_cast<size_t>(node)] != 0; }
@@ -107,6 +112,10 @@ class TetCutter {
   Eigen::Vector3d Relocate(int32_t node, const Eigen::Vector3d& v, const Eigen::Vector3d& n,
                            const models::SweptQuad& sweep, const mesh::Points& x) const;
   bool InsideSwept(const Eigen::Vector3d& x, double tolerance) const;
+  // Whether the boundary segment of the swept region nearest to y is the tip's path (then a, b
+  // are that segment) rather than the blade p1 q1.
+  bool NearestIsTipPath(const Eigen::Vector3d& y, const models::SweptQuad& sweep,
+                        Eigen::Vector3d* a, Eigen::Vector3d* b) const;
   Eigen::Vector3d SurfaceNormal(int32_t node, const mesh::Points& x) const;
   // Removes the tetrahedra of all but the largest group of alive ones around vertex v (w < 0)
   // or edge (v, w) — groups linked across faces holding v (and w) — unless that orphans a
@@ -166,7 +175,6 @@ class TetCutter {
   std::vector<int32_t> losing_;  // per node: tets a pinch repair would take (0 between uses)
   uint32_t epoch_ = 0;
   std::vector<double> volume_before_;  // per tet, this step
-  mutable std::vector<int32_t> surface_scratch_;
 };
 
 }  // namespace somasim::cutting

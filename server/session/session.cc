@@ -133,6 +133,11 @@ Session::Session(const scene::Scene& scene, const scene::SceneLines& lines,
                           surface_nodes.end());
       o->compliance->Precompute(surface_nodes);
     }
+    if (o->built.fem != nullptr && o->built.volume.tetrahedra.cols() > 0) {
+      o->cutter =
+          std::make_unique<cutting::TetCutter>(o->built.volume.tetrahedra, o->state->positions);
+      o->cut_before = o->state->positions;
+    }
     o->attachments.resize(static_cast<size_t>(capacity));
     dt_ = std::min(dt_, o->built.dt);
     organs_.push_back(std::move(o));
@@ -230,6 +235,9 @@ std::span<const SessionEventRecord> Session::TakeEvents() {
 void Session::Step() {
   time_ += dt_;
   ++ticks_;
+  for (int32_t t = 0; t < num_tools(); ++t) {
+    if (tools_[static_cast<size_t>(t)]->shape.kind == contact::ToolKind::kScalpel) Cut(t);
+  }
   for (int32_t k = 0; k < num_organs(); ++k) {
     SessionOrgan& o = *organs_[static_cast<size_t>(k)];
     // Half a tick of slack so that rounding in the sums never skips a step.
@@ -252,6 +260,10 @@ void Session::StepOrgan(int32_t k) {
   for (auto& tool : tools_) {
     if (tool->contacts.empty()) continue;
     contact::ToolContact& c = *tool->contacts[static_cast<size_t>(k)];
+    if (tool->blade_engaged) {  // the blade is in the tissue: it cuts, it does not push
+      c.Reset(tool->command.pose);
+      continue;
+    }
     c.Update(tool->command.pose, *o.surface, x);
     append(c.attachments());
   }
@@ -295,6 +307,46 @@ void Session::StepOrgan(int32_t k) {
     if (nearest != nullptr) r->sphere->UpdateTool(nearest->shape, nearest->command.pose);
     r->sphere->Step(o.built.dt, gravity_, o.state->positions);
   }
+}
+
+void Session::Cut(int32_t t) {
+  SessionTool& tool = *tools_[static_cast<size_t>(t)];
+  const contact::ToolPose& pose = tool.command.pose;
+  const Eigen::Vector3d p = pose.tip;
+  const Eigen::Vector3d q = contact::PointOnShaft(pose, tool.shape.blade_length);
+  const bool engaged = tool.commanded && (tool.command.buttons & kCutButton) != 0;
+  const bool jumped =
+      (p - tool.blade_p).norm() > kMaxBladeStep || (q - tool.blade_q).norm() > kMaxBladeStep;
+  if (engaged && (!tool.blade_engaged || jumped)) {
+    for (auto& o : organs_) {
+      if (o->cutter) o->cutter->BeginIncision();
+    }
+  } else if (engaged) {
+    const models::SweptQuad sweep{tool.blade_p, tool.blade_q, p, q};
+    for (int32_t k = 0; k < num_organs(); ++k) {
+      SessionOrgan& o = *organs_[static_cast<size_t>(k)];
+      int32_t removed = 0;
+      if (o.cutter) {
+        o.cut_before = o.state->positions;  // same size: no allocation
+        const cutting::CutStepResult r = o.cutter->Step(sweep, &o.state->positions);
+        if (r.removed > 0 || r.relocated > 0) {
+          o.built.fem->ApplyCut(o.cutter->removed_tets(), o.cutter->moved_nodes(), o.cut_before,
+                                o.state.get());
+        }
+        removed = r.removed;
+        if (removed > 0) ++o.topology_version;
+      } else if (o.built.model->SupportsCutting()) {
+        removed = o.built.model->Cut(sweep, o.state.get());
+      }
+      if (removed > 0) {
+        o.elements_cut += removed;
+        Emit(SessionEventRecord::Kind::kCut, k, t, removed);
+      }
+    }
+  }
+  tool.blade_engaged = engaged;
+  tool.blade_p = p;
+  tool.blade_q = q;
 }
 
 void Session::UpdateForceModel(int32_t t) {
@@ -353,6 +405,14 @@ void Session::UpdateForceModel(int32_t t) {
 
 void Session::Reset() {
   for (auto& o : organs_) {
+    if (o->elements_cut > 0) {  // the cut is undone: a new topology
+      if (o->cutter) {
+        o->cutter = std::make_unique<cutting::TetCutter>(o->built.volume.tetrahedra,
+                                                         o->built.volume.vertices);
+      }
+      ++o->topology_version;
+      o->elements_cut = 0;
+    }
     o->state = o->built.model->MakeState();
     o->surface->Refit(o->state->positions);
     o->time = 0.0;
@@ -362,6 +422,7 @@ void Session::Reset() {
     for (auto& c : tool->contacts) c->Reset(tool->command.pose);
     tool->was_touching = false;
     tool->was_grasping = false;
+    tool->blade_engaged = false;
     tool->force_organ = -1;
   }
   for (auto& r : rigid_) r->sphere = std::make_unique<contact::RigidSphere>(r->settings, r->start);

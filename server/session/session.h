@@ -11,6 +11,13 @@
 // first in the scene's order), else says "no contact".
 // A step a model rejects (it diverged: SPEC §7) leaves the organ at its last good state, at rest
 // (velocities zeroed, so the next step does not repeat the divergence), and is reported.
+// A scalpel with its cut button held (kCutButton) cuts: each tick its blade's sweep since the
+// last tick goes to every organ (FEM: cutting::TetCutter, then FemModel::ApplyCut; particle
+// models: TissueModel::Cut), before the organs step; while it cuts, the blade is in the tissue
+// and its tip does not push it (no contact springs, no force model: the hand feels no
+// resistance yet). A cut that removes elements bumps the organ's topology_version and emits
+// kCut. The contact surface stays the organ's original outer surface (the inner faces of a cut
+// do not collide yet).
 // Rigid bodies (spheres) lie in the organ whose bounding box holds their centre at start-up (the
 // nearest organ otherwise) and meet the tool whose tip is nearest to them.
 #pragma once
@@ -28,6 +35,7 @@
 #include "server/contact/contact_pipeline.h"
 #include "server/contact/local_force_model.h"
 #include "server/contact/rigid_body.h"
+#include "server/cutting/tet_cutter.h"
 #include "server/solve/organ_builder.h"
 
 namespace somasim::server {
@@ -43,12 +51,13 @@ struct SessionEventRecord {
     kStepRejected = 7,
     kForceModelRefused = 15,  // the contact gave a model MakeLocalForceModel refused
     kReset = 16,              // every organ back to rest (Session::Reset)
+    kCut = 13,                // a blade step cut tissue (detail: elements or springs removed)
   };
   Kind kind = Kind::kGrasp;
   double sim_time = 0.0;  // [s]
   int32_t organ = -1;     // index into the session's organs, or -1
   int32_t tool = -1;      // index into the session's tools, or -1
-  int32_t detail = 0;     // kGrasp: nodes held; kStepRejected: models::StepStatus
+  int32_t detail = 0;     // kGrasp: nodes held; kStepRejected: models::StepStatus; kCut: removed
 };
 
 // What a tool command sets (server/app/ checks the sample before it gets here).
@@ -67,6 +76,15 @@ struct SessionOrgan {
   int32_t num_attachments = 0;
   double time = 0.0;  // [s] of this organ's accepted and rejected steps
   int64_t rejected_steps = 0;
+  // Cutting (SPEC §5.3). FEM organs: the vertex-preserving cutter on the volume, and the
+  // positions before a blade step (3 × num_nodes, scratch). Particle organs whose model
+  // SupportsCutting are cut by the model itself. Others (reduced models) cannot be cut.
+  std::unique_ptr<cutting::TetCutter> cutter;
+  mesh::Points cut_before;
+  // The organ's topology (its volume's alive elements, its rest positions, its surface): 1 at
+  // start, +1 whenever a cut removes elements or a reset puts them back, never decreasing.
+  uint32_t topology_version = 1;
+  int64_t elements_cut = 0;  // elements (FEM) or springs/constraints (particles) removed
 };
 
 struct SessionTool {
@@ -79,7 +97,17 @@ struct SessionTool {
   int32_t force_organ = -1;  // the organ the force model comes from, or -1
   bool was_touching = false;
   bool was_grasping = false;
+  // Scalpel: the blade PQ [m] at the last tick, and whether the cut button was held then.
+  bool blade_engaged = false;
+  Eigen::Vector3d blade_p = Eigen::Vector3d::Zero();
+  Eigen::Vector3d blade_q = Eigen::Vector3d::Zero();
 };
+
+// Tool-command buttons (idl/tool.idl): bit 2 engages a scalpel's blade.
+inline constexpr uint32_t kCutButton = 4;
+// A blade that jumps further than this [m] in one tick (a late command, a clutch) starts a new
+// incision there instead of cutting through everything between.
+inline constexpr double kMaxBladeStep = 0.02;
 
 struct SessionRigid {
   std::string id;
@@ -136,6 +164,8 @@ class Session {
 
  private:
   void StepOrgan(int32_t k);
+  // The scalpel `t`'s blade step since the last tick, cutting every organ it crosses.
+  void Cut(int32_t t);
   void UpdateForceModel(int32_t t);
   void Emit(SessionEventRecord::Kind kind, int32_t organ, int32_t tool, int32_t detail);
 

@@ -281,3 +281,138 @@ TEST(Session, ClosedSurfaceBuiltinIsAnAnchoredShellThatHoldsItsShapeAndRecovers)
 
 }  // namespace
 }  // namespace somasim::server
+
+namespace somasim::server {
+namespace {
+
+// A vertical scalpel (the blade 10 mm up the shaft from the tip) 4 mm into the top of the
+// kidney, drawn 2 cm along x in 0.8 s with the cut button held.
+struct Incision {
+  Eigen::Vector3d start;
+  Eigen::Vector3d end;
+};
+
+Incision AcrossTheTop(const Session& session) {
+  const Eigen::Vector3d top = TopOf(session, 0);
+  const Eigen::Vector3d depth(0.0, 0.0, -0.004);
+  return {top + depth + Eigen::Vector3d(-0.01, 0.0, 0.0),
+          top + depth + Eigen::Vector3d(0.01, 0.0, 0.0)};
+}
+
+ToolCommandInput Blade(const Eigen::Vector3d& tip, bool cut, uint64_t sequence) {
+  ToolCommandInput c = At(tip, 1.0, sequence);
+  c.buttons = cut ? kCutButton : 0;
+  return c;
+}
+
+TEST(SessionCut, AScalpelStrokeCutsTheFemOrganAndBumpsItsTopology) {
+  Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
+  const int32_t s = session.ToolIndex("scalpel");
+  const Incision cut = AcrossTheTop(session);
+  const int32_t num_nodes = session.organ(0).built.model->num_nodes();
+  ASSERT_NE(session.organ(0).cutter, nullptr);
+  EXPECT_EQ(session.organ(0).topology_version, 1u);
+  uint64_t seq = 0;
+  int32_t cut_events = 0;
+  int32_t removed = 0;
+  const int steps = 80;
+  for (int i = 0; i <= steps; ++i) {
+    const double u = static_cast<double>(i) / steps;
+    session.SetToolCommand(s, Blade((1.0 - u) * cut.start + u * cut.end, true, ++seq));
+    session.Step();
+    for (const SessionEventRecord& e : session.TakeEvents()) {
+      if (e.kind != SessionEventRecord::Kind::kCut) continue;
+      ++cut_events;
+      removed += e.detail;
+      EXPECT_EQ(e.organ, 0);
+      EXPECT_EQ(e.tool, s);
+    }
+    // The engaged blade does not push: no contact force on the scalpel.
+    EXPECT_FALSE(session.tool(s).force_model.in_contact) << "tick " << i;
+  }
+  const SessionOrgan& o = session.organ(0);
+  EXPECT_GT(cut_events, 3) << "the wound forms progressively under the blade";
+  EXPECT_GT(removed, 4);
+  EXPECT_EQ(o.elements_cut, removed);
+  EXPECT_EQ(o.cutter->num_tets() - o.cutter->num_alive(), removed);
+  EXPECT_EQ(o.topology_version, 1u + static_cast<uint32_t>(cut_events));
+  EXPECT_EQ(o.built.model->num_nodes(), num_nodes);  // vertex-preserving
+  EXPECT_EQ(session.rejected_steps(), 0u);
+  EXPECT_TRUE(o.state->positions.allFinite());
+  // The FEM state dropped exactly the cutter's removed elements.
+  for (int32_t e = 0; e < o.cutter->num_tets(); ++e) {
+    ASSERT_EQ(o.built.fem->ElementAlive(*o.state, e), o.cutter->alive(e)) << "element " << e;
+  }
+  // The re-extracted surface has inner faces.
+  mesh::Triangles triangles;
+  std::vector<uint8_t> inner;
+  o.cutter->ExtractSurface(&triangles, &inner);
+  EXPECT_GT(std::count(inner.begin(), inner.end(), 1), 4);
+  EXPECT_EQ(triangles.cols(), static_cast<Eigen::Index>(inner.size()));
+  // Out of the tissue and the button released: the blade stops cutting, the tissue settles.
+  session.SetToolCommand(s, Blade(cut.end + Eigen::Vector3d(0.0, 0.0, 0.03), false, ++seq));
+  for (int i = 0; i < 50; ++i) session.Step();
+  EXPECT_EQ(session.rejected_steps(), 0u);
+  EXPECT_TRUE(o.state->positions.allFinite());
+  // A reset puts the tissue back, as a new topology.
+  session.Reset();
+  EXPECT_EQ(session.organ(0).elements_cut, 0);
+  EXPECT_EQ(session.organ(0).cutter->num_alive(), session.organ(0).cutter->num_tets());
+  EXPECT_EQ(session.organ(0).topology_version, 2u + static_cast<uint32_t>(cut_events));
+}
+
+TEST(SessionCut, WithoutTheCutButtonTheScalpelOnlyPresses) {
+  Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
+  const int32_t s = session.ToolIndex("scalpel");
+  const Incision cut = AcrossTheTop(session);
+  uint64_t seq = 0;
+  for (int i = 0; i <= 40; ++i) {
+    const double u = static_cast<double>(i) / 40;
+    session.SetToolCommand(s, Blade((1.0 - u) * cut.start + u * cut.end, false, ++seq));
+    session.Step();
+    for (const SessionEventRecord& e : session.TakeEvents()) {
+      EXPECT_NE(e.kind, SessionEventRecord::Kind::kCut);
+    }
+  }
+  EXPECT_EQ(session.organ(0).elements_cut, 0);
+  EXPECT_EQ(session.organ(0).topology_version, 1u);
+  EXPECT_TRUE(session.tool(s).force_model.in_contact);  // it presses like a probe
+}
+
+TEST(SessionCut, ABladeThatJumpsStartsANewIncisionInsteadOfCuttingThrough) {
+  Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
+  const int32_t s = session.ToolIndex("scalpel");
+  const Incision cut = AcrossTheTop(session);
+  uint64_t seq = 0;
+  // Engaged at one end, then the next command 3 cm away (a lost stretch of commands).
+  session.SetToolCommand(s, Blade(cut.start - Eigen::Vector3d(0.01, 0.0, 0.0), true, ++seq));
+  session.Step();
+  session.SetToolCommand(s, Blade(cut.end + Eigen::Vector3d(0.01, 0.0, 0.0), true, ++seq));
+  session.Step();
+  EXPECT_EQ(session.organ(0).elements_cut, 0);
+}
+
+TEST(SessionCut, CuttingStepsAllocateNothing) {
+  Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
+  const int32_t s = session.ToolIndex("scalpel");
+  const Incision cut = AcrossTheTop(session);
+  uint64_t seq = 0;
+  const int steps = 80;
+  for (int i = 0; i <= steps; ++i) {
+    const double u = static_cast<double>(i) / steps;
+    session.SetToolCommand(s, Blade((1.0 - u) * cut.start + u * cut.end, true, ++seq));
+    if (i < 20) {
+      session.Step();
+      (void)session.TakeEvents();
+      continue;
+    }
+    testing::AllocationCounter counter;
+    session.Step();
+    (void)session.TakeEvents();
+    ASSERT_EQ(counter.count(), 0) << "tick " << i;
+  }
+  EXPECT_GT(session.organ(0).elements_cut, 0);
+}
+
+}  // namespace
+}  // namespace somasim::server
