@@ -17,6 +17,7 @@
 #include <map>
 #include <memory>
 #include <random>
+#include <span>
 #include <thread>
 
 #include "common/app/log.h"
@@ -187,6 +188,21 @@ class Server {
       const auto& x = session.organ(k).state->positions;
       snapshots_.back()->Write({x.data(), static_cast<size_t>(x.size())}, 0.0);
     }
+    // Topologies after a cut or a reset: the alive flags of the organ's tetrahedra (cut organs)
+    // and its rest positions, handed over like the positions when the organ's version changes;
+    // the publisher extracts the new surface with its own copy of the cutter's adjacency.
+    for (int32_t k = 0; k < session.num_organs(); ++k) {
+      const SessionOrgan& o = session.organ(k);
+      const size_t tets = o.cutter ? static_cast<size_t>(o.cutter->num_tets()) : 0;
+      topology_scratch_.emplace_back(tets + static_cast<size_t>(o.built.rest().size()), 0.0);
+      topology_snapshots_.push_back(
+          std::make_unique<SnapshotBuffer>(topology_scratch_.back().size()));
+      surface_cutters_.push_back(
+          o.cutter ? std::make_unique<cutting::TetCutter>(o.built.volume.tetrahedra, o.built.rest())
+                   : nullptr);
+      handed_version_.push_back(o.topology_version);
+      published_version_.push_back(o.topology_version);
+    }
     // Rigid bodies: x y z, w x y z, grasped (0/1) each, handed over like the organs' positions.
     rigid_scratch_.assign(kRigidValues * static_cast<size_t>(session.num_rigid()), 0.0);
     rigid_snapshot_ = std::make_unique<SnapshotBuffer>(rigid_scratch_.size());
@@ -267,6 +283,14 @@ class Server {
            {"grasps", s.grasps}});
     }
     r["tools"] = tools;
+    nlohmann::ordered_json organs = nlohmann::ordered_json::array();
+    for (int32_t k = 0; k < session_.num_organs(); ++k) {
+      const SessionOrgan& o = session_.organ(k);
+      organs.push_back({{"id", o.built.id},
+                        {"topology_version", o.topology_version},
+                        {"elements_cut", o.elements_cut}});
+    }
+    r["organs"] = organs;
     return r;
   }
 
@@ -314,26 +338,87 @@ class Server {
     session_writer_->Write(info);
     for (int32_t k = 0; k < session_.num_organs(); ++k) {
       const solve::BuiltOrgan& b = session_.organ(k).built;
-      std::vector<float> rest(static_cast<size_t>(b.rest().size()));
-      for (size_t i = 0; i < rest.size(); ++i) rest[i] = static_cast<float>(b.rest().data()[i]);
-      std::vector<uint32_t> triangles(static_cast<size_t>(b.triangles.size()));
-      for (size_t i = 0; i < triangles.size(); ++i) {
-        triangles[i] = static_cast<uint32_t>(b.triangles.data()[i]);
+      const std::vector<uint8_t> inner(static_cast<size_t>(b.triangles.cols()), 0);
+      PublishTopology(k, published_version_[static_cast<size_t>(k)],
+                      {b.rest().data(), static_cast<size_t>(b.rest().size())}, b.triangles, inner);
+    }
+  }
+
+  // One organ's topology: rest positions (3 × num_nodes [m]), surface triangles and their
+  // inner-face marks, under `version`.
+  void PublishTopology(int32_t k, uint32_t version, std::span<const double> rest_positions,
+                       const mesh::Triangles& surface, const std::vector<uint8_t>& inner_faces) {
+    const solve::BuiltOrgan& b = session_.organ(k).built;
+    std::vector<float> rest(rest_positions.size());
+    for (size_t i = 0; i < rest.size(); ++i) rest[i] = static_cast<float>(rest_positions[i]);
+    std::vector<uint32_t> triangles(static_cast<size_t>(surface.size()));
+    for (size_t i = 0; i < triangles.size(); ++i) {
+      triangles[i] = static_cast<uint32_t>(surface.data()[i]);
+    }
+    std::vector<uint8_t> inner = inner_faces;
+    somasim_wire_OrganTopology t{};
+    t.organ = dds::CString(b.id);
+    t.format_version = dds::kWireFormatVersion;
+    t.server_id = server_id_;
+    t.version = version;
+    t.num_nodes = static_cast<uint32_t>(b.model->num_nodes());
+    t.rest_positions._buffer = rest.data();
+    t.rest_positions._length = t.rest_positions._maximum = static_cast<uint32_t>(rest.size());
+    t.triangles._buffer = triangles.data();
+    t.triangles._length = t.triangles._maximum = static_cast<uint32_t>(triangles.size());
+    t.inner_face._buffer = inner.data();
+    t.inner_face._length = t.inner_face._maximum = static_cast<uint32_t>(inner.size());
+    topology_writer_->Write(t);
+  }
+
+  // Physics thread: hands over each organ whose topology version changed (a cut, a reset) — its
+  // alive flags and rest positions. Allocation-free.
+  void SnapshotTopologies() {
+    for (int32_t k = 0; k < session_.num_organs(); ++k) {
+      const auto i = static_cast<size_t>(k);
+      const SessionOrgan& o = session_.organ(k);
+      if (o.topology_version == handed_version_[i]) continue;
+      handed_version_[i] = o.topology_version;
+      std::vector<double>& out = topology_scratch_[i];
+      size_t at = 0;
+      if (o.cutter) {
+        for (const uint8_t alive : o.cutter->alive_flags()) out[at++] = alive != 0 ? 1.0 : 0.0;
       }
+      const mesh::Points& rest =
+          o.built.fem != nullptr ? o.built.fem->RestPositions(*o.state) : o.built.rest();
+      std::copy_n(rest.data(), rest.size(), out.begin() + static_cast<std::ptrdiff_t>(at));
+      topology_snapshots_[i]->Write(out, static_cast<double>(o.topology_version));
+    }
+  }
+
+  // Publisher thread: republishes the topologies handed over (the surface re-extracted with
+  // the cut's inner faces marked), then a keyframe, as a subscriber needs one to start the new
+  // topology's frames.
+  void PublishTopologies() {
+    for (int32_t k = 0; k < session_.num_organs(); ++k) {
+      const auto i = static_cast<size_t>(k);
+      SnapshotBuffer& snapshot = *topology_snapshots_[i];
+      if (!snapshot.Take()) continue;
+      const auto version = static_cast<uint32_t>(snapshot.time());
+      const std::span<const double> values = snapshot.values();
+      const solve::BuiltOrgan& b = session_.organ(k).built;
+      size_t tets = 0;
+      mesh::Triangles triangles = b.triangles;
       std::vector<uint8_t> inner(static_cast<size_t>(b.triangles.cols()), 0);
-      somasim_wire_OrganTopology t{};
-      t.organ = dds::CString(b.id);
-      t.format_version = dds::kWireFormatVersion;
-      t.server_id = server_id_;
-      t.version = 1;
-      t.num_nodes = static_cast<uint32_t>(b.model->num_nodes());
-      t.rest_positions._buffer = rest.data();
-      t.rest_positions._length = t.rest_positions._maximum = static_cast<uint32_t>(rest.size());
-      t.triangles._buffer = triangles.data();
-      t.triangles._length = t.triangles._maximum = static_cast<uint32_t>(triangles.size());
-      t.inner_face._buffer = inner.data();
-      t.inner_face._length = t.inner_face._maximum = static_cast<uint32_t>(inner.size());
-      topology_writer_->Write(t);
+      if (surface_cutters_[i]) {
+        tets = static_cast<size_t>(surface_cutters_[i]->num_tets());
+        std::vector<uint8_t> alive(tets);
+        for (size_t t = 0; t < tets; ++t) alive[t] = values[t] != 0.0 ? 1 : 0;
+        surface_cutters_[i]->ExtractSurface(alive, &triangles, &inner);
+      }
+      published_version_[i] = version;
+      PublishTopology(k, version, values.subspan(tets), triangles, inner);
+      encoders_[i]->ForceKeyframe();
+      Log(LogLevel::kInfo, "topology_republished",
+          {{"organ", organ_ids_[i]},
+           {"version", version},
+           {"triangles", triangles.cols()},
+           {"inner_faces", std::count(inner.begin(), inner.end(), uint8_t{1})}});
     }
   }
 
@@ -403,6 +488,7 @@ class Server {
                                                   session_.time());
       }
       SnapshotRigidBodies();
+      SnapshotTopologies();
       if (t1 - window_start >= std::chrono::seconds(1)) {
         shared_.p50 = window_.Quantile(0.5);
         shared_.p99 = window_.Quantile(0.99);
@@ -524,6 +610,7 @@ class Server {
           for (auto& e : encoders_) e->ForceKeyframe();
         }
         matched = readers;
+        PublishTopologies();
         PublishFrames();
         PublishRigidBodies();
         next_frame += frame_period;
@@ -553,6 +640,7 @@ class Server {
     SessionEventRecord e;
     while (shared_.events.Pop(&e)) PublishSessionEvent(e);
     // The final shape, as a keyframe so that every subscriber can take it.
+    PublishTopologies();
     for (auto& encoder : encoders_) encoder->ForceKeyframe();
     PublishFrames();
     PublishRigidBodies();
@@ -584,7 +672,7 @@ class Server {
       f.base_frame = v.base_frame;
       f.keyframe = v.keyframe;
       f.sim_time = snapshot.time();
-      f.topology_version = 1;
+      f.topology_version = published_version_[k];
       f.num_nodes = v.num_nodes;
       f.sender_time_ns =
           std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch())
@@ -742,6 +830,11 @@ class Server {
   std::unique_ptr<dds::Reader<somasim_wire_ToolCommand>> command_reader_;
   std::unique_ptr<dds::Reader<somasim_wire_InstructorCommand>> instructor_reader_;
   std::vector<std::unique_ptr<SnapshotBuffer>> snapshots_;
+  std::vector<std::unique_ptr<SnapshotBuffer>> topology_snapshots_;   // per organ
+  std::vector<std::vector<double>> topology_scratch_;                 // physics thread's
+  std::vector<std::unique_ptr<cutting::TetCutter>> surface_cutters_;  // publisher's; null: uncut
+  std::vector<uint32_t> handed_version_;     // physics thread: the last version handed over
+  std::vector<uint32_t> published_version_;  // publisher thread: the last version published
   static constexpr size_t kRigidValues = 8;  // per rigid body: x y z, w x y z, grasped
   std::unique_ptr<dds::Writer<somasim_wire_RigidBodyState>> rigid_writer_;  // none: no bodies
   std::unique_ptr<SnapshotBuffer> rigid_snapshot_;

@@ -3,6 +3,7 @@
 // cannot cross them, and talks to them through tests/server/app/session_client.h.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <csignal>
@@ -148,6 +149,67 @@ TEST(ServerOverDds, LateAndLossySubscribersConvergeToTheServersFloatsBitForBit) 
   EXPECT_EQ(mismatched, 0);
   // The pressing made partial deltas: the shape changed between frames.
   EXPECT_NE(history.begin()->second, history.rbegin()->second);
+}
+
+// The scalpel, cut button held, drawn 4 cm along x through the kidney's top 6 mm deep in 2 s
+// (from 1 s on; before that it waits above the start).
+somasim_wire_ToolCommand Incising(double t, uint64_t seq) {
+  const double u = std::clamp(t - 1.0, 0.0, 2.0) / 2.0;
+  somasim_wire_ToolCommand c =
+      ToolCommandAt("scalpel", -0.02 + 0.04 * u, 0.0, t < 1.0 ? 0.04 : 0.0224 - 0.006, seq);
+  c.buttons = t < 1.0 ? 0 : 4;
+  return c;
+}
+
+TEST(ServerOverDds, ACutIsRepublishedAndALateJoinerGetsThePostCutTopology) {
+  const std::string dir = TempDir("cut");
+  auto server = StartProgram(
+      "somasim-server", ServerArgs("builtin:kidney424", "cut", 149, {"--report", dir + "/r.json"}),
+      dir + "/server.log");
+  SessionClient surgeon(149, "cut");
+  ASSERT_TRUE(surgeon.PollUntil([&] { return surgeon.has_session(); }, seconds(30)))
+      << ReadText(dir + "/server.log");
+  const Clock::time_point start = Clock::now();
+  uint64_t seq = 0;
+  const auto drive = [&] {
+    const double t = std::chrono::duration<double>(Clock::now() - start).count();
+    surgeon.SendToolCommand(Incising(t, ++seq));
+  };
+  // The stroke, then 1 s more for the last cut to reach the wire.
+  ASSERT_TRUE(surgeon.PollUntil(
+      [&] {
+        drive();
+        return Clock::now() - start > seconds(4);
+      },
+      seconds(30)));
+  const OrganView& seen = surgeon.organs()["kidney424"];
+  EXPECT_GT(seen.topology_version, 1u) << ReadText(dir + "/server.log");
+  EXPECT_GT(seen.topologies_received, 1u);
+  EXPECT_GT(std::count(seen.inner_face.begin(), seen.inner_face.end(), 1), 0);
+  EXPECT_EQ(seen.inner_face.size() * 3, seen.triangles.size());
+  // A subscriber joining after the cut gets the newest topology (transient-local) and frames
+  // of it.
+  SessionClient late(149, "cut");
+  ASSERT_TRUE(late.PollUntil(
+      [&] {
+        surgeon.Poll();
+        auto it = late.organs().find("kidney424");
+        return it != late.organs().end() && it->second.decoder && it->second.decoder->has_shape();
+      },
+      seconds(10)));
+  const OrganView& joined = late.organs()["kidney424"];
+  EXPECT_EQ(joined.topology_version, seen.topology_version);
+  EXPECT_EQ(joined.topologies_received, 1u) << "a late joiner needs only the newest topology";
+  EXPECT_EQ(joined.triangles, seen.triangles);
+  EXPECT_EQ(joined.inner_face, seen.inner_face);
+  EXPECT_EQ(joined.rest, seen.rest);
+  server->Signal(SIGTERM);
+  EXPECT_EQ(server->Wait(seconds(10)), 0) << ReadText(dir + "/server.log");
+  const nlohmann::json report = ReadJson(dir + "/r.json");
+  ASSERT_TRUE(report.contains("organs")) << report.dump();
+  EXPECT_GT(report["organs"][0]["elements_cut"].get<int64_t>(), 0);
+  EXPECT_EQ(report["organs"][0]["topology_version"].get<uint32_t>(), seen.topology_version);
+  EXPECT_GT(report["events"]["cut"].get<int64_t>(), 0);
 }
 
 TEST(ServerOverDds, BadToolCommandsAreDroppedAndCounted) {

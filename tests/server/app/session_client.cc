@@ -101,6 +101,9 @@ void SessionClient::Poll() {
       o.topology_version = t.version;
       o.num_nodes = t.num_nodes;
       o.rest.assign(t.rest_positions._buffer, t.rest_positions._buffer + t.rest_positions._length);
+      o.triangles.assign(t.triangles._buffer, t.triangles._buffer + t.triangles._length);
+      o.inner_face.assign(t.inner_face._buffer, t.inner_face._buffer + t.inner_face._length);
+      ++o.topologies_received;
       o.decoder = std::make_unique<wire::FrameDecoder>(static_cast<int32_t>(t.num_nodes));
     }
     server_ids_.insert(t.server_id);
@@ -133,6 +136,7 @@ void SessionClient::OnFrame(const somasim_wire_MeshFrame& f) {
   if (it == organs_.end() || !it->second.decoder) return;  // no topology yet
   OrganView& o = it->second;
   ++o.frames_received;
+  if (f.topology_version != o.topology_version) ++o.frames_of_other_topology;
   if (drop_fraction_ > 0.0 &&
       std::uniform_real_distribution<double>(0.0, 1.0)(rng_) < drop_fraction_) {
     ++o.frames_dropped_on_purpose;

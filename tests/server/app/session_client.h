@@ -39,7 +39,11 @@ struct OrganView {
   uint32_t topology_version = 0;
   uint32_t num_nodes = 0;
   std::vector<float> rest;
+  std::vector<uint32_t> triangles;   // 3 per surface triangle
+  std::vector<uint8_t> inner_face;   // per triangle: 1 = the inner face of a cut
+  uint32_t topologies_received = 0;  // versions taken (a cut republishes)
   std::unique_ptr<wire::FrameDecoder> decoder;
+  uint64_t frames_of_other_topology = 0;  // frames stamped with another topology version
   uint64_t frames_received = 0;
   uint64_t frames_dropped_on_purpose = 0;
   uint64_t bad_frames = 0;
