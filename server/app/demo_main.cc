@@ -228,6 +228,15 @@ int Demo(int argc, char** argv) {
     }
     std::printf("\n");
   }
+  if (s.contains("organs") && s["organs"].is_array()) {
+    for (const auto& o : s["organs"]) {
+      if (!o.contains("elements_cut") || o["elements_cut"].get<int64_t>() == 0) continue;
+      std::printf("cut              %s: %lld elements removed, topology version %u\n",
+                  o.value("id", std::string("?")).c_str(),
+                  static_cast<long long>(o["elements_cut"].get<int64_t>()),
+                  o.value("topology_version", 0U));
+    }
+  }
   std::printf("report           %s\n", (out / "demo_report.json").c_str());
   if (server_rc != 0) {
     std::fprintf(stderr, "somasim-demo: the server exited with %d (see %s)\n", server_rc,

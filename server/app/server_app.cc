@@ -769,6 +769,9 @@ class Server {
       text += " (" + std::to_string(e.detail) + " nodes held)";
       if (e.tool >= 0) ++tool_stats_[static_cast<size_t>(e.tool)].grasps;
     }
+    if (e.kind == SessionEventRecord::Kind::kCut) {
+      text += " (" + std::to_string(e.detail) + " removed)";
+    }
     if (e.kind == SessionEventRecord::Kind::kStepRejected) {
       text += std::string(" (") +
               models::StepStatusName(static_cast<models::StepStatus>(e.detail)) +

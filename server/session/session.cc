@@ -317,6 +317,11 @@ void Session::Cut(int32_t t) {
   const bool engaged = tool.commanded && (tool.command.buttons & kCutButton) != 0;
   const bool jumped =
       (p - tool.blade_p).norm() > kMaxBladeStep || (q - tool.blade_q).norm() > kMaxBladeStep;
+  if (tool.blade_engaged && (!engaged || jumped) && tool.incision_removed > 0) {
+    // The incision ends: one event for it, with what it removed.
+    Emit(SessionEventRecord::Kind::kCut, tool.incision_organ, t, tool.incision_removed);
+    tool.incision_removed = 0;
+  }
   if (engaged && (!tool.blade_engaged || jumped)) {
     for (auto& o : organs_) {
       if (o->cutter) o->cutter->BeginIncision();
@@ -340,7 +345,8 @@ void Session::Cut(int32_t t) {
       }
       if (removed > 0) {
         o.elements_cut += removed;
-        Emit(SessionEventRecord::Kind::kCut, k, t, removed);
+        tool.incision_removed += removed;
+        tool.incision_organ = k;
       }
     }
   }
@@ -423,6 +429,7 @@ void Session::Reset() {
     tool->was_touching = false;
     tool->was_grasping = false;
     tool->blade_engaged = false;
+    tool->incision_removed = 0;
     tool->force_organ = -1;
   }
   for (auto& r : rigid_) r->sphere = std::make_unique<contact::RigidSphere>(r->settings, r->start);

@@ -15,11 +15,11 @@
 // last tick goes to every organ (FEM: cutting::TetCutter, then FemModel::ApplyCut; particle
 // models: TissueModel::Cut), before the organs step; while it cuts, the blade is in the tissue
 // and its tip does not push it (no contact springs, no force model: the hand feels no
-// resistance yet). A cut that removes elements bumps the organ's topology_version and emits
-// kCut. The contact surface stays the organ's original outer surface (the inner faces of a cut
-// do not collide yet).
-// Rigid bodies (spheres) lie in the organ whose bounding box holds their centre at start-up (the
-// nearest organ otherwise) and meet the tool whose tip is nearest to them.
+// resistance yet). A blade step that removes elements bumps the organ's topology_version; an
+// incision (cut button pressed to released, or to a jump) that removed any emits one kCut. The
+// contact surface stays the organ's original outer surface (the inner faces of a cut do not collide
+// yet). Rigid bodies (spheres) lie in the organ whose bounding box holds their centre at start-up
+// (the nearest organ otherwise) and meet the tool whose tip is nearest to them.
 #pragma once
 
 #include <Eigen/Core>
@@ -51,7 +51,7 @@ struct SessionEventRecord {
     kStepRejected = 7,
     kForceModelRefused = 15,  // the contact gave a model MakeLocalForceModel refused
     kReset = 16,              // every organ back to rest (Session::Reset)
-    kCut = 13,                // a blade step cut tissue (detail: elements or springs removed)
+    kCut = 13,  // an incision that cut tissue ended (detail: elements or springs it removed)
   };
   Kind kind = Kind::kGrasp;
   double sim_time = 0.0;  // [s]
@@ -101,6 +101,8 @@ struct SessionTool {
   bool blade_engaged = false;
   Eigen::Vector3d blade_p = Eigen::Vector3d::Zero();
   Eigen::Vector3d blade_q = Eigen::Vector3d::Zero();
+  int32_t incision_removed = 0;  // elements or springs this incision removed so far
+  int32_t incision_organ = -1;   // the organ it last cut
 };
 
 // Tool-command buttons (idl/tool.idl): bit 2 engages a scalpel's blade.

@@ -152,12 +152,13 @@ TEST(ServerOverDds, LateAndLossySubscribersConvergeToTheServersFloatsBitForBit) 
 }
 
 // The scalpel, cut button held, drawn 4 cm along x through the kidney's top 6 mm deep in 2 s
-// (from 1 s on; before that it waits above the start).
+// (from 1 s on; before that it waits above the start), then lifted out with the button released.
 somasim_wire_ToolCommand Incising(double t, uint64_t seq) {
   const double u = std::clamp(t - 1.0, 0.0, 2.0) / 2.0;
+  const bool cutting = t >= 1.0 && t < 3.2;
   somasim_wire_ToolCommand c =
-      ToolCommandAt("scalpel", -0.02 + 0.04 * u, 0.0, t < 1.0 ? 0.04 : 0.0224 - 0.006, seq);
-  c.buttons = t < 1.0 ? 0 : 4;
+      ToolCommandAt("scalpel", -0.02 + 0.04 * u, 0.0, cutting ? 0.0224 - 0.006 : 0.04, seq);
+  c.buttons = cutting ? 4 : 0;
   return c;
 }
 
