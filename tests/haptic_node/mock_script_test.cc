@@ -323,7 +323,7 @@ TEST(MockScript, ShippedScriptsParseWithTheirDocumentedDurationsAndTools) {
       EXPECT_LT(k.position.x(), 0.1230) << sh.file << ":" << k.line;
       EXPECT_GT(k.position.y(), -0.0607) << sh.file << ":" << k.line;
       EXPECT_LT(k.position.y(), 0.0749) << sh.file << ":" << k.line;
-      EXPECT_GT(k.position.z(), 0.0709 - 0.02) << sh.file << ":" << k.line;
+      EXPECT_GT(k.position.z(), 0.0709 - 0.025) << sh.file << ":" << k.line;
       EXPECT_LT(k.position.z(), 0.0709 + 0.05) << sh.file << ":" << k.line;
       // The tool points straight down throughout.
       EXPECT_TRUE(k.orientation.coeffs().isApprox(Eigen::Quaterniond::Identity().coeffs()))
