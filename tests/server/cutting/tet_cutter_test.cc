@@ -200,15 +200,22 @@ TEST(TetCutter, RelocatesOntoTheSweepAndOntoItsBoundaryOutsideIt) {
 }
 
 TEST(TetCutter, RandomBladePathsNeverBreakAnyVolumeOrgan) {
+  // Every built-in volume organ: the small ones with 400 paths each, the 19k-element liver and
+  // beam with 60 (the sanitizer build: the two smallest, 40 paths each).
   const std::vector<std::string> organs =
-      testing::kUnderSanitizer ? std::vector<std::string>{"plate192", "liver288"}
-                               : std::vector<std::string>{"plate192", "liver288", "kidney424"};
-  const int paths = testing::kUnderSanitizer ? 40 : 400;
+      testing::kUnderSanitizer
+          ? std::vector<std::string>{"plate192", "liver288"}
+          : std::vector<std::string>{"plate192", "liver288", "kidney424", "liver4055", "beam19k"};
   std::mt19937_64 rng(20261123);
   for (const std::string& name : organs) {
+    const int paths = testing::kUnderSanitizer                     ? 40
+                      : (name == "liver4055" || name == "beam19k") ? 60
+                                                                   : 400;
     const Organ o = Load(name);
     const Vector3d lo = o.box.min, hi = o.box.max;
     const Vector3d size = hi - lo;
+    // Blades in proportion to the organ (the beam is 16 m long, the organs 5–25 cm).
+    const double scale = std::max(1.0, size.maxCoeff() / 0.25);
     std::uniform_real_distribution<double> u(0.0, 1.0);
     const auto random_point = [&] {
       return Vector3d(lo.x() + u(rng) * size.x(), lo.y() + u(rng) * size.y(),
@@ -222,12 +229,12 @@ TEST(TetCutter, RandomBladePathsNeverBreakAnyVolumeOrgan) {
       // A blade of 1–4 cm moving 5–15 steps of up to 5 mm, turning as it goes.
       Vector3d p = random_point();
       Vector3d dir = Vector3d::Random().normalized();
-      const double length = 0.01 + 0.03 * u(rng);
+      const double length = scale * (0.01 + 0.03 * u(rng));
       Vector3d heading = Vector3d::Random().normalized();
       const int steps = 5 + static_cast<int>(u(rng) * 10);
       int unresolved = 0;
       for (int k = 0; k < steps; ++k) {
-        const Vector3d p1 = p + 0.005 * u(rng) * heading;
+        const Vector3d p1 = p + scale * 0.005 * u(rng) * heading;
         const Vector3d dir1 = (dir + 0.2 * Vector3d::Random()).normalized();
         const CutStepResult r = cutter.Step({p, p + length * dir, p1, p1 + length * dir1}, &x);
         total_removed += r.removed;
