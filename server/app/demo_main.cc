@@ -1,7 +1,8 @@
 // somasim-demo: the README's main job. Runs the headless demo session on loopback — a
 // somasim-server on the built-in liver and a mock haptic node playing the demo script
 // (palpate, grasp and pull, incision) — waits for both, then prints a summary and writes a
-// JSON report (steps, step-time percentiles, frames, forces, contact time, events). The session
+// JSON report (steps, step-time percentiles, frames, forces, contact time, events) and records
+// the session (OUT/<session>.somarec, for somasim-replay). The session
 // ends at --duration of session time or when the script ends, whichever comes first. With
 // --arm the session is driven as a station with an arm is: somasim-haptic --device shm and the
 // emulated arm somasim-arm-sim, whose hand plays the script (palpate.txt by default).
@@ -91,7 +92,8 @@ int Demo(int argc, char** argv) {
   somasim::app::ChildProcess server(
       {(bin / "somasim-server").string(), "--scene", scene, "--session", session, "--headless",
        "--duration", dur, "--domain", std::to_string(domain), "--dds-config", dds_config,
-       "--report", (out / "server_report.json").string(), "--verbose"},
+       "--report", (out / "server_report.json").string(), "--verbose", "--record",
+       (out / (session + ".somarec")).string()},
       (out / "server.log").string());
   const std::string arm_name = "demo-" + std::to_string(getpid());
   std::vector<std::string> haptic_args = {(bin / "somasim-haptic").string(),
@@ -235,6 +237,17 @@ int Demo(int argc, char** argv) {
                   o.value("id", std::string("?")).c_str(),
                   static_cast<long long>(o["elements_cut"].get<int64_t>()),
                   o.value("topology_version", 0U));
+    }
+  }
+  if (s.contains("recording") && s["recording"].is_object()) {
+    const auto& rec = s["recording"];
+    if (rec.value("failed", false)) {
+      std::printf("recording        FAILED: %s\n", rec.value("error", std::string()).c_str());
+    } else {
+      std::printf("recording        %s (%.1f MB); replay it: somasim-replay %s\n",
+                  rec.value("file", std::string()).c_str(),
+                  static_cast<double>(rec.value("bytes", uint64_t{0})) / 1e6,
+                  rec.value("file", std::string()).c_str());
     }
   }
   std::printf("report           %s\n", (out / "demo_report.json").c_str());

@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
+#include <cctype>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -29,6 +30,7 @@
 #include "common/wire/frame_dump.h"
 #include "server/app/snapshot_buffer.h"
 #include "server/contact/force_model_wire.h"
+#include "server/recording/recorder.h"
 #include "server/session/session.h"
 
 #ifndef SOMASIM_VERSION
@@ -71,6 +73,17 @@ class EventRing {
 
 // What a tool command must be to move a tool (SPEC §7: bad samples are dropped and counted).
 // Returns "" when usable, else what is wrong; fills `input`.
+// Empty when `trainee` is a usable pseudonym for a recording's header, else why not.
+std::string TraineeError(const std::string& trainee) {
+  if (trainee.size() > 32) return "is longer than 32 characters";
+  for (const char c : trainee) {
+    if (!std::isalnum(static_cast<unsigned char>(c)) && c != '-' && c != '_') {
+      return "may hold only letters, digits, - and _ (a pseudonym such as trainee-07)";
+    }
+  }
+  return "";
+}
+
 std::string CheckToolCommand(const somasim_wire_ToolCommand& c, const Session& session,
                              int32_t* tool, ToolCommandInput* input) {
   if (c.format_version != dds::kWireFormatVersion) {
@@ -138,7 +151,8 @@ struct Shared {
   std::atomic<uint64_t> force_models{0};
   std::atomic<uint64_t> steps{0};
   std::atomic<uint64_t> rejected_steps{0};
-  std::atomic<uint64_t> behind{0};  // times the physics fell > 0.5 s behind the wall clock
+  std::atomic<uint64_t> behind{0};       // times the physics fell > 0.5 s behind the wall clock
+  std::atomic<uint64_t> steps_taken{0};  // Session::Step calls (the recording's step count)
   std::atomic<double> sim_time{0.0};
   std::atomic<double> p50{0.0};
   std::atomic<double> p99{0.0};
@@ -149,8 +163,9 @@ struct Shared {
 
 class Server {
  public:
-  Server(const ServerOptions& options, Session& session, const std::string& dds_config)
-      : options_(options), session_(session) {
+  Server(const ServerOptions& options, Session& session, const std::string& dds_config,
+         Recorder* recorder)
+      : options_(options), session_(session), recorder_(recorder) {
     std::random_device rd;
     server_id_ = (static_cast<uint64_t>(rd()) << 32) ^ rd();
     // Cyclone's threads and the publisher (created from here on) wait on the wire: a short slice
@@ -240,6 +255,10 @@ class Server {
     }
     shared_.done = true;
     publisher.join();
+    if (recorder_ != nullptr) {
+      recorder_->Finish(steps_, app::StopRequested() ? "stopped by a signal" : "the session ended");
+      ReportRecordingFailure();
+    }
     Heartbeat(4);
     PublishEvent(12, "", "session ends");
     return kExitOk;
@@ -291,6 +310,12 @@ class Server {
                         {"elements_cut", o.elements_cut}});
     }
     r["organs"] = organs;
+    if (recorder_ != nullptr) {
+      const RecorderStats rs = recorder_->stats();
+      r["recording"] = {{"file", options_.record}, {"records", rs.records},   {"bytes", rs.bytes},
+                        {"gaps", rs.gaps},         {"records_lost", rs.lost}, {"failed", rs.failed},
+                        {"error", rs.error}};
+    }
     return r;
   }
 
@@ -461,7 +486,10 @@ class Server {
       if (shared_.reset.exchange(false)) {
         session_.Reset();
         paced_start = Clock::now();
-        for (const SessionEventRecord& e : session_.TakeEvents()) shared_.events.Push(e);
+        for (const SessionEventRecord& e : session_.TakeEvents()) {
+          shared_.events.Push(e);
+          if (recorder_ != nullptr) recorder_->Event(steps_, session_.time(), e);
+        }
       }
       if (shared_.paused.load()) {
         const Clock::time_point before = Clock::now();
@@ -472,6 +500,8 @@ class Server {
       const Clock::time_point t0 = Clock::now();
       session_.Step();
       const Clock::time_point t1 = Clock::now();
+      ++steps_;
+      shared_.steps_taken = steps_;
       const double us = std::chrono::duration<double, std::micro>(t1 - t0).count();
       window_.Add(us);
       total_.Add(us);
@@ -481,7 +511,13 @@ class Server {
       shared_.rejected_steps = session_.rejected_steps();
       shared_.sim_time = session_.time();
       PublishForceModels();
-      for (const SessionEventRecord& e : session_.TakeEvents()) shared_.events.Push(e);
+      for (const SessionEventRecord& e : session_.TakeEvents()) {
+        shared_.events.Push(e);
+        if (recorder_ != nullptr) recorder_->Event(steps_, session_.time(), e);
+      }
+      if (recorder_ != nullptr && steps_ % checkpoint_interval_ == 0) {
+        recorder_->Checkpoint(steps_, session_.time(), session_);
+      }
       for (int32_t k = 0; k < session_.num_organs(); ++k) {
         const auto& x = session_.organ(k).state->positions;
         snapshots_[static_cast<size_t>(k)]->Write({x.data(), static_cast<size_t>(x.size())},
@@ -560,6 +596,7 @@ class Server {
             return;
           }
           session_.SetToolCommand(tool, input);
+          if (recorder_ != nullptr) recorder_->ToolCommand(steps_, session_.time(), tool, input);
           last_command_[static_cast<size_t>(tool)] = c.seq;
         },
         256);
@@ -631,6 +668,7 @@ class Server {
       SessionEventRecord e;
       while (shared_.events.Pop(&e)) PublishSessionEvent(e);
       TakeInstructorCommands();
+      ReportRecordingFailure();
       const Clock::time_point wake = std::min({next_frame, next_heartbeat, next_metrics});
       now = Clock::now();
       if (wake > now)
@@ -720,6 +758,19 @@ class Server {
     }
   }
 
+  // Publisher thread: a recording that stopped (a full disk, an fsync error) is said loudly,
+  // once: an error event to every subscriber and an error in the log.
+  void ReportRecordingFailure() {
+    if (recorder_ == nullptr || recording_failure_reported_ || !recorder_->failed()) return;
+    recording_failure_reported_ = true;
+    const std::string error = recorder_->stats().error;
+    Log(LogLevel::kError, "recording_stopped",
+        {{"file", options_.record},
+         {"error", error},
+         {"detail", "the session goes on unrecorded"}});
+    PublishEvent(2, "", "RECORDING STOPPED: " + error + " — the session goes on unrecorded");
+  }
+
   void PublishMetrics() {
     somasim_wire_ServerMetrics m{};
     m.format_version = dds::kWireFormatVersion;
@@ -793,6 +844,10 @@ class Server {
                 {{"reason", "format_version " + std::to_string(c.format_version)}});
             return;
           }
+          if (recorder_ != nullptr) {
+            recorder_->Instructor(shared_.steps_taken.load(), shared_.sim_time.load(), c.kind, who,
+                                  text);
+          }
           switch (c.kind) {
             case 1:
               shared_.paused = true;
@@ -819,6 +874,10 @@ class Server {
 
   const ServerOptions& options_;
   Session& session_;
+  Recorder* recorder_ = nullptr;  // none: not recording
+  uint64_t steps_ = 0;            // physics thread: Session::Step calls
+  uint64_t checkpoint_interval_ = Recorder::CheckpointInterval(session_.dt());
+  bool recording_failure_reported_ = false;
   uint64_t server_id_ = 0;
   std::unique_ptr<dds::Domain> domain_;
   std::unique_ptr<dds::Participant> participant_;
@@ -910,6 +969,12 @@ int ServerMain(int argc, char** argv) {
   cli.add_flag("--as-fast-as-possible", fast,
                "do not pace session time to the wall clock (offline runs, tests)");
   cli.add_option("--report", options.report, "write a JSON report here at the end");
+  cli.add_option("--record", options.record,
+                 "record the session to this new file (.somarec; never overwritten), for "
+                 "somasim-replay");
+  cli.add_option("--trainee", options.trainee,
+                 "the trainee's pseudonym in the recording (letters, digits, - and _; at most 32; "
+                 "never a person's name)");
   cli.add_option("--rt-priority", options.rt_priority,
                  "run the physics thread under SCHED_FIFO at this priority (1-99; needs "
                  "CAP_SYS_NICE; refused: says so and runs at normal priority). A physics "
@@ -930,12 +995,17 @@ int ServerMain(int argc, char** argv) {
                  bad.c_str());
     return kExitUsage;
   }
+  if (const std::string bad = TraineeError(options.trainee); !bad.empty()) {
+    std::fprintf(stderr, "somasim-server: --trainee \"%s\" %s\n", options.trainee.c_str(),
+                 bad.c_str());
+    return kExitUsage;
+  }
   app::InstallStopSignals();
   std::unique_ptr<Session> session;
+  std::string scene_dir = ".";
   try {
     scene::Scene scene;
     scene::SceneLines lines(options.scene);
-    std::string scene_dir = ".";
     if (options.scene.rfind("builtin:", 0) == 0) {
       scene = ServerDefaultScene(options.scene.substr(8));
     } else {
@@ -965,9 +1035,27 @@ int ServerMain(int argc, char** argv) {
     std::fprintf(stderr, "somasim-server: %s\n", e.what());
     return kExitIo;
   }
+  std::unique_ptr<Recorder> recorder;
+  if (!options.record.empty()) {
+    std::string error;
+    std::unique_ptr<recording::Sink> sink = recording::CreateFileSink(options.record, &error);
+    try {
+      if (!sink) throw std::runtime_error(error);
+      recorder =
+          std::make_unique<Recorder>(std::move(sink),
+                                     Recorder::MakeHeader(*session, scene_dir, options.session,
+                                                          options.trainee, SOMASIM_VERSION),
+                                     *session);
+    } catch (const std::runtime_error& e) {
+      Log(LogLevel::kError, "recording_refused", {{"file", options.record}, {"error", e.what()}});
+      std::fprintf(stderr, "somasim-server: %s\n", e.what());
+      return kExitIo;
+    }
+    Log(LogLevel::kInfo, "recording", {{"file", options.record}});
+  }
   nlohmann::ordered_json report;
   try {
-    Server server(options, *session, dds_config);
+    Server server(options, *session, dds_config, recorder.get());
     Log(LogLevel::kInfo, "running",
         {{"session", options.session},
          {"domain", options.domain},

@@ -35,6 +35,10 @@ struct ServerOptions {
   // At the end, each organ's last published frame: DIR/<organ>.f32 (3 × num_nodes float32, the
   // exact values a subscriber holds) and DIR/<organ>.frame (its frame number, text).
   std::string dump_final;
+  // The session's recording (docs/recording.md): a new file ("" = none) and the trainee's
+  // pseudonym in its header ([A-Za-z0-9_-], at most 32; never a person's name).
+  std::string record;
+  std::string trainee;
   int rt_priority = 0;  // SCHED_FIFO priority of the physics thread; 0 = normal
   bool verbose = false;
 };

@@ -467,6 +467,20 @@ TEST(ServerCommandLine, RefusesBadOptionsAndScenesWithClearErrors) {
       RunProgram("somasim-server", "--scene builtin:tissue45 --dds-config " + dir + "/none.xml");
   EXPECT_EQ(config.status, 4);
   EXPECT_NE(config.out.find("none.xml"), std::string::npos);
+  // Recordings: a trainee's pseudonym only, never an existing file, a full disk said at once.
+  const ToolRun name = RunProgram("somasim-server", "--trainee 'Jane Doe' --duration 1");
+  EXPECT_EQ(name.status, 2);
+  EXPECT_NE(name.out.find("pseudonym"), std::string::npos) << name.out;
+  std::ofstream(dir + "/old.somarec") << "evidence";
+  const ToolRun exists = RunProgram(
+      "somasim-server", "--scene builtin:tissue45 --duration 1 --record " + dir + "/old.somarec");
+  EXPECT_EQ(exists.status, 4);
+  EXPECT_NE(exists.out.find("never overwritten"), std::string::npos) << exists.out;
+  EXPECT_EQ(ReadText(dir + "/old.somarec"), "evidence");
+  const ToolRun full =
+      RunProgram("somasim-server", "--scene builtin:tissue45 --duration 1 --record /dev/full");
+  EXPECT_EQ(full.status, 4);
+  EXPECT_NE(full.out.find("No space left"), std::string::npos) << full.out;
 }
 
 TEST(MockHapticCommandLine, RefusesBadOptionsAndScriptsAndWaitsForAServer) {
@@ -485,6 +499,24 @@ TEST(MockHapticCommandLine, RefusesBadOptionsAndScriptsAndWaitsForAServer) {
                                        LoopbackConfigFile() + " --wait-server 0.5");
   EXPECT_EQ(none.status, 6);
   EXPECT_NE(none.out.find("no_server"), std::string::npos);
+}
+
+TEST(Replay, RefusesWhatIsNotAGoodRecordingWithClearErrors) {
+  EXPECT_EQ(RunProgram("somasim-replay", "--help").status, 0);
+  EXPECT_EQ(RunProgram("somasim-replay", "").status, 2);
+  const std::string dir = TempDir("replay_cli");
+  const ToolRun missing = RunProgram("somasim-replay", dir + "/none.somarec");
+  EXPECT_EQ(missing.status, 3);
+  EXPECT_NE(missing.out.find("none.somarec"), std::string::npos) << missing.out;
+  std::ofstream(dir + "/text.somarec") << "hello";
+  const ToolRun text = RunProgram("somasim-replay", dir + "/text.somarec");
+  EXPECT_EQ(text.status, 3);
+  EXPECT_NE(text.out.find("not a somasim recording"), std::string::npos) << text.out;
+  // The golden file replays (its checkpoint may differ as the physics improves: 0 or 1).
+  const ToolRun golden = RunProgram(
+      "somasim-replay", std::string(SOMASIM_TEST_DATA_DIR) + "/recordings/v1_kidney.somarec");
+  EXPECT_TRUE(golden.status == 0 || golden.status == 1) << golden.out;
+  EXPECT_NE(golden.out.find("replayed 120 steps"), std::string::npos) << golden.out;
 }
 
 TEST(Demo, PalpatingTheLiverRendersForcesAndReportsThem) {
@@ -506,6 +538,21 @@ TEST(Demo, PalpatingTheLiverRendersForcesAndReportsThem) {
   EXPECT_EQ(s["rejected_steps"], 0);
   EXPECT_GE(s["events"]["contact begins"].get<int>(), 3);
   EXPECT_GT(s["frames_published"].get<int>(), 100);
+  // The demo recorded the session, and it replays bit for bit.
+  const nlohmann::json& rec = s["recording"];
+  ASSERT_FALSE(rec["failed"].get<bool>()) << rec.dump();
+  EXPECT_EQ(rec["gaps"].get<int>(), 0);
+  const std::string file = rec["file"].get<std::string>();
+  const ToolRun replay = RunProgram("somasim-replay", file + " --report " + dir + "/replay.json");
+  EXPECT_EQ(replay.status, 0) << replay.out;
+  EXPECT_NE(replay.out.find("reproduced bit for bit"), std::string::npos) << replay.out;
+  const nlohmann::json rr = ReadJson(dir + "/replay.json");
+  EXPECT_FALSE(rr["diverged"].get<bool>()) << rr.dump();
+  EXPECT_TRUE(rr["ended_cleanly"].get<bool>());
+  // One checkpoint a second of session time (100 steps of the liver's 10 ms).
+  EXPECT_GE(rr["checkpoints_matched"].get<uint64_t>(), 1U);
+  EXPECT_EQ(rr["checkpoints_matched"].get<uint64_t>(), s["ticks"].get<uint64_t>() / 100);
+  EXPECT_EQ(rr["steps"].get<uint64_t>(), s["ticks"].get<uint64_t>());
 }
 
 }  // namespace
