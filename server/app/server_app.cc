@@ -31,6 +31,7 @@
 #include "server/app/snapshot_buffer.h"
 #include "server/contact/force_model_wire.h"
 #include "server/recording/recorder.h"
+#include "server/recording/replay.h"
 #include "server/session/session.h"
 
 #ifndef SOMASIM_VERSION
@@ -164,8 +165,8 @@ struct Shared {
 class Server {
  public:
   Server(const ServerOptions& options, Session& session, const std::string& dds_config,
-         Recorder* recorder)
-      : options_(options), session_(session), recorder_(recorder) {
+         Recorder* recorder, RecordedInputs* replay = nullptr)
+      : options_(options), session_(session), recorder_(recorder), replay_(replay) {
     std::random_device rd;
     server_id_ = (static_cast<uint64_t>(rd()) << 32) ^ rd();
     // Cyclone's threads and the publisher (created from here on) wait on the wire: a short slice
@@ -481,8 +482,14 @@ class Server {
     Clock::time_point paced_start = Clock::now();
     Clock::time_point window_start = paced_start;
     uint64_t window_steps = 0;
+    bool fast_forward = replay_ != nullptr && options_.replay_from > 0.0;
     while (!app::StopRequested()) {
-      DrainToolCommands();
+      if (replay_ != nullptr) {
+        if (ApplyReplay()) paced_start = Clock::now();  // a recorded reset: time starts at 0
+        if (replay_->finished()) break;
+      } else {
+        DrainToolCommands();
+      }
       if (shared_.reset.exchange(false)) {
         session_.Reset();
         paced_start = Clock::now();
@@ -518,12 +525,22 @@ class Server {
       if (recorder_ != nullptr && steps_ % checkpoint_interval_ == 0) {
         recorder_->Checkpoint(steps_, session_.time(), session_);
       }
-      for (int32_t k = 0; k < session_.num_organs(); ++k) {
-        const auto& x = session_.organ(k).state->positions;
-        snapshots_[static_cast<size_t>(k)]->Write({x.data(), static_cast<size_t>(x.size())},
-                                                  session_.time());
+      if (fast_forward && session_.time() >= options_.replay_from - 1e-9) {
+        // A replay from --from: the fast-forward is over; publish and pace from here.
+        fast_forward = false;
+        paced_start =
+            Clock::now() - std::chrono::duration_cast<Clock::duration>(
+                               std::chrono::duration<double>(session_.time() / options_.speed));
+        Log(LogLevel::kInfo, "replay_from", {{"sim_time", session_.time()}, {"step", steps_}});
       }
-      SnapshotRigidBodies();
+      if (!fast_forward) {
+        for (int32_t k = 0; k < session_.num_organs(); ++k) {
+          const auto& x = session_.organ(k).state->positions;
+          snapshots_[static_cast<size_t>(k)]->Write({x.data(), static_cast<size_t>(x.size())},
+                                                    session_.time());
+        }
+        SnapshotRigidBodies();
+      }
       SnapshotTopologies();
       if (t1 - window_start >= std::chrono::seconds(1)) {
         shared_.p50 = window_.Quantile(0.5);
@@ -535,10 +552,10 @@ class Server {
         window_start = t1;
       }
       if (options_.duration > 0.0 && session_.time() >= options_.duration - 1e-9) break;
-      if (options_.realtime) {
+      if (options_.realtime && !fast_forward) {
         const Clock::time_point target =
             paced_start + std::chrono::duration_cast<Clock::duration>(
-                              std::chrono::duration<double>(session_.time()));
+                              std::chrono::duration<double>(session_.time() / options_.speed));
         const Clock::time_point now = Clock::now();
         if (now < target) {
           std::this_thread::sleep_until(target);
@@ -553,6 +570,23 @@ class Server {
       }
     }
     wall_time_ = Seconds(Clock::now() - start_);
+  }
+
+  // Physics thread, replay mode: the recording's inputs up to this step (tool commands, resets;
+  // checkpoints compared). Whether a reset came.
+  bool ApplyReplay() {
+    replay_->ApplyUpTo(steps_, &session_);
+    bool reset = false;
+    for (const SessionEventRecord& e : session_.TakeEvents()) {
+      shared_.events.Push(e);
+      reset |= e.kind == SessionEventRecord::Kind::kReset;
+    }
+    const ReplayResult& r = replay_->result();
+    if (r.diverged && !divergence_reported_) {
+      divergence_reported_ = true;
+      Log(LogLevel::kWarning, "replay_diverged", {{"divergence", r.divergence}});
+    }
+    return reset;
   }
 
   static void LogSlice(const app::SliceResult& r, const char* threads) {
@@ -858,7 +892,11 @@ class Server {
               PublishEvent(9, who, "resumed by instructor " + who);
               break;
             case 3:
-              shared_.reset = true;
+              if (replay_ != nullptr) {
+                PublishEvent(1, who, "a replay cannot be reset: it plays the recording");
+              } else {
+                shared_.reset = true;
+              }
               break;
             case 4:
               PublishEvent(10, who, text);
@@ -874,8 +912,10 @@ class Server {
 
   const ServerOptions& options_;
   Session& session_;
-  Recorder* recorder_ = nullptr;  // none: not recording
-  uint64_t steps_ = 0;            // physics thread: Session::Step calls
+  Recorder* recorder_ = nullptr;      // none: not recording
+  RecordedInputs* replay_ = nullptr;  // replay mode: the recording's inputs instead of DDS's
+  bool divergence_reported_ = false;
+  uint64_t steps_ = 0;  // physics thread: Session::Step calls
   uint64_t checkpoint_interval_ = Recorder::CheckpointInterval(session_.dt());
   bool recording_failure_reported_ = false;
   uint64_t server_id_ = 0;
@@ -1087,6 +1127,77 @@ int ServerMain(int argc, char** argv) {
     }
   }
   return kExitOk;
+}
+
+int ReplayServerMain(const ServerOptions& given, const std::string& file) {
+  app::SetLogProcess("replay");
+  ServerOptions options = given;
+  if (const std::string bad = dds::SessionNameError(options.session); !bad.empty()) {
+    std::fprintf(stderr, "somasim-replay: --session \"%s\" %s\n", options.session.c_str(),
+                 bad.c_str());
+    return kExitUsage;
+  }
+  app::InstallStopSignals();
+  std::unique_ptr<RecordedInputs> inputs;
+  std::unique_ptr<Session> session;
+  try {
+    inputs = std::make_unique<RecordedInputs>(file);
+    session = inputs->MakeSession();
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "somasim-replay: %s\n", e.what());
+    return kExitBadScene;
+  }
+  // The checkpoint nearest to --from.
+  const double every = static_cast<double>(inputs->header().checkpoint_interval()) * session->dt();
+  if (options.replay_from > 0.0 && every > 0.0) {
+    options.replay_from = std::round(options.replay_from / every) * every;
+  }
+  std::string dds_config;
+  try {
+    dds_config = dds::ReadDdsConfig(options.dds_config);
+  } catch (const std::runtime_error& e) {
+    std::fprintf(stderr, "somasim-replay: %s\n", e.what());
+    return kExitIo;
+  }
+  nlohmann::ordered_json report;
+  try {
+    Server server(options, *session, dds_config, nullptr, inputs.get());
+    Log(LogLevel::kInfo, "replaying",
+        {{"file", file},
+         {"session", options.session},
+         {"domain", options.domain},
+         {"speed", options.speed},
+         {"from_s", options.replay_from}});
+    server.Run();
+    report = server.Report();
+  } catch (const dds::DdsError& e) {
+    std::fprintf(stderr, "somasim-replay: DDS: %s\n", e.what());
+    return kExitDds;
+  } catch (const std::exception& e) {  // a corrupt record met while publishing
+    std::fprintf(stderr, "somasim-replay: %s\n", e.what());
+    return kExitBadScene;
+  }
+  const ReplayResult& r = inputs->result();
+  report["replay"] = {{"file", file},
+                      {"checkpoints_matched", r.checkpoints_matched},
+                      {"diverged", r.diverged},
+                      {"divergence", r.divergence},
+                      {"gap", r.gap},
+                      {"truncated", r.truncated},
+                      {"ended_cleanly", r.ended_cleanly},
+                      {"finished", inputs->finished()}};
+  std::printf(
+      "published the replay of %s in session %s: %.3f s of session time, %llu "
+      "checkpoints reproduced bit for bit%s\n",
+      file.c_str(), options.session.c_str(), session->time(),
+      static_cast<unsigned long long>(r.checkpoints_matched),
+      r.diverged ? (", then DIVERGED: " + r.divergence).c_str() : "");
+  if (!options.report.empty()) {
+    std::ofstream out(options.report);
+    out << report.dump(2) << "\n";
+    if (!out) return kExitIo;
+  }
+  return r.diverged ? 1 : kExitOk;
 }
 
 }  // namespace somasim::server

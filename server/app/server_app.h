@@ -39,11 +39,22 @@ struct ServerOptions {
   // pseudonym in its header ([A-Za-z0-9_-], at most 32; never a person's name).
   std::string record;
   std::string trainee;
+  // Replay mode (somasim-replay --publish): session time runs at `speed` × the wall clock, and
+  // starts being published at the checkpoint nearest to `replay_from` [s] (fast-forwarded to it).
+  double speed = 1.0;
+  double replay_from = 0.0;
   int rt_priority = 0;  // SCHED_FIFO priority of the physics thread; 0 = normal
   bool verbose = false;
 };
 
 // The whole program: parses argv (--help, --version), runs, returns the exit code.
 int ServerMain(int argc, char** argv);
+
+// somasim-replay --publish: re-publishes the recording at `file` as a server would (the session
+// description, topologies, frames, events, heartbeat, metrics) in options.session, driven by
+// the recording's inputs instead of tool commands; instructors may pause and resume it. Returns
+// an exit code: 0 replayed to its end (every checkpoint reproduced), 1 diverged, 3 a recording
+// refused, 4 an I/O error, 5 DDS.
+int ReplayServerMain(const ServerOptions& options, const std::string& file);
 
 }  // namespace somasim::server

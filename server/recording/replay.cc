@@ -53,44 +53,59 @@ std::string Compare(const recording::Checkpoint& c, const Session& session,
 
 }  // namespace
 
-ReplayResult Replay(const std::string& path, const ReplayOptions& options) {
-  recording::Reader reader(path);
-  const recording::RecordingHeader& h = reader.header();
-  ReplayResult result;
-  result.software_version = h.software_version();
+RecordedInputs::RecordedInputs(const std::string& path)
+    : path_(path),
+      reader_(std::make_unique<recording::Reader>(path)),
+      next_(std::make_unique<recording::Record>()) {
+  const recording::RecordingHeader& h = reader_->header();
+  result_.software_version = h.software_version();
   if (recording::TextHash(h.scene_text()) != h.scene_hash()) {
     throw recording::RecordingError(path + ": the scene does not match its hash", 12);
   }
-  scene::SceneLines lines(path + " (recorded scene)");
-  const scene::Scene scene = scene::ParseScene(h.scene_text(), path + " (recorded scene)", &lines);
-  Session session(scene, lines, h.scene_dir().empty() ? "." : h.scene_dir());
-  if (session.dt() != h.dt()) {
-    throw std::runtime_error(path + ": the recorded scene ticks at " + std::to_string(h.dt()) +
-                             " s; rebuilt, it ticks at " + std::to_string(session.dt()) + " s");
+}
+
+RecordedInputs::~RecordedInputs() = default;
+
+const recording::RecordingHeader& RecordedInputs::header() const { return reader_->header(); }
+
+std::unique_ptr<Session> RecordedInputs::MakeSession() const {
+  const recording::RecordingHeader& h = reader_->header();
+  scene::SceneLines lines(path_ + " (recorded scene)");
+  const scene::Scene scene = scene::ParseScene(h.scene_text(), path_ + " (recorded scene)", &lines);
+  auto session =
+      std::make_unique<Session>(scene, lines, h.scene_dir().empty() ? "." : h.scene_dir());
+  if (session->dt() != h.dt()) {
+    throw std::runtime_error(path_ + ": the recorded scene ticks at " + std::to_string(h.dt()) +
+                             " s; rebuilt, it ticks at " + std::to_string(session->dt()) + " s");
   }
-  bool stopped = false;
-  const auto step_to = [&](uint64_t step) {
-    while (result.steps < step && !stopped) {
-      session.Step();
-      (void)session.TakeEvents();
-      ++result.steps;
-      if (options.on_step && !options.on_step(session, result.steps)) stopped = true;
+  return session;
+}
+
+void RecordedInputs::ApplyUpTo(uint64_t steps, Session* session) {
+  while (!finished_) {
+    if (!has_next_) {
+      if (!reader_->Next(next_.get())) {
+        finished_ = true;
+        result_.truncated = reader_->truncated();
+        result_.end_offset = reader_->end_offset();
+        break;
+      }
+      has_next_ = true;
+      ++result_.records;
+      result_.end_offset = reader_->end_offset();
     }
-  };
-  recording::Record r;
-  while (!stopped && !result.diverged && reader.Next(&r)) {
-    ++result.records;
-    step_to(r.step());
-    if (stopped) break;
+    const recording::Record& r = *next_;
+    if (r.step() > steps) break;
+    has_next_ = false;
+    last_step_ = r.step();
     switch (r.kind_case()) {
       case recording::Record::kToolCommand: {
         const recording::ToolCommand& c = r.tool_command();
-        if (c.tool() < 0 || c.tool() >= session.num_tools() ||
-            session.tool(c.tool()).id != c.tool_id() || c.tip_size() != 3 ||
+        if (c.tool() < 0 || c.tool() >= session->num_tools() ||
+            session->tool(c.tool()).id != c.tool_id() || c.tip_size() != 3 ||
             c.orientation_size() != 4) {
-          throw std::runtime_error(path + ": the tool command at byte " +
-                                   std::to_string(reader.end_offset()) + " (" + Where(r) +
-                                   ") does not fit the scene's tools");
+          throw std::runtime_error(path_ + ": the tool command of " + Where(r) +
+                                   " does not fit the scene's tools");
         }
         ToolCommandInput input;
         input.pose.tip = Eigen::Vector3d(c.tip(0), c.tip(1), c.tip(2));
@@ -99,42 +114,58 @@ ReplayResult Replay(const std::string& path, const ReplayOptions& options) {
         input.pose.jaw_opening = c.jaw_opening();
         input.buttons = c.buttons();
         input.sequence = c.sequence();
-        session.SetToolCommand(c.tool(), input);
+        session->SetToolCommand(c.tool(), input);
         break;
       }
       case recording::Record::kEvent:
         if (r.event().kind() == static_cast<uint32_t>(SessionEventRecord::Kind::kReset)) {
-          session.Reset();
-          (void)session.TakeEvents();
+          session->Reset();
         }
         break;
       case recording::Record::kCheckpoint:
-        if (!result.gap) {
-          result.divergence = Compare(r.checkpoint(), session, r);
-          if (result.divergence.empty()) {
-            ++result.checkpoints_matched;
+        if (!result_.gap && !result_.diverged) {
+          result_.divergence = Compare(r.checkpoint(), *session, r);
+          if (result_.divergence.empty()) {
+            ++result_.checkpoints_matched;
           } else {
-            result.diverged = true;
+            result_.diverged = true;
+            finished_ = true;
           }
         }
         break;
       case recording::Record::kGap:
-        if (!result.gap) {
-          result.gap = true;
-          result.gap_step = r.step();
+        if (!result_.gap) {
+          result_.gap = true;
+          result_.gap_step = r.step();
         }
         break;
       case recording::Record::kEnd:
-        result.ended_cleanly = true;
+        result_.ended_cleanly = true;
+        finished_ = true;
         break;
       case recording::Record::kInstructor:
       case recording::Record::KIND_NOT_SET:
         break;
     }
   }
-  result.truncated = reader.truncated();
-  result.end_offset = reader.end_offset();
-  result.sim_time = session.time();
+}
+
+ReplayResult Replay(const std::string& path, const ReplayOptions& options) {
+  RecordedInputs inputs(path);
+  const std::unique_ptr<Session> session = inputs.MakeSession();
+  uint64_t steps = 0;
+  while (true) {
+    inputs.ApplyUpTo(steps, session.get());
+    (void)session->TakeEvents();
+    if (inputs.finished()) break;
+    session->Step();
+    (void)session->TakeEvents();
+    ++steps;
+    if (options.on_step && !options.on_step(*session, steps)) break;
+  }
+  ReplayResult result = inputs.result();
+  result.steps = steps;
+  result.sim_time = session->time();
   return result;
 }
 

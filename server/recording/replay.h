@@ -5,8 +5,10 @@
 
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <string>
 
+#include "common/recording/recording_file.h"
 #include "server/session/session.h"
 
 namespace somasim::server {
@@ -30,6 +32,39 @@ struct ReplayResult {
   bool truncated = false;        // the file ends inside a record ...
   uint64_t end_offset = 0;       // ... and its last good record ends here [bytes]
   std::string software_version;  // of the server that recorded it
+};
+
+// A recording's inputs applied to a session step by step: what Replay and the server's replay
+// mode (somasim-replay --publish) share. Opening checks the header (as recording::Reader, and
+// the scene against its hash).
+class RecordedInputs {
+ public:
+  explicit RecordedInputs(const std::string& path);
+  ~RecordedInputs();
+  RecordedInputs(const RecordedInputs&) = delete;
+  RecordedInputs& operator=(const RecordedInputs&) = delete;
+
+  const recording::RecordingHeader& header() const;
+  // The recording's session, built from its scene (throws as Replay does).
+  std::unique_ptr<Session> MakeSession() const;
+  // Applies the records of `steps` steps taken and before: tool commands and resets (a reset's
+  // events stay in the session for the caller to take), checkpoints compared bit for bit (the
+  // first difference makes result().diverged). Throws as Replay does for a corrupt record.
+  void ApplyUpTo(uint64_t steps, Session* session);
+  // No record remains (an End record, the end of the file, or a divergence).
+  bool finished() const { return finished_; }
+  // The steps of the last record applied (where a replay ends).
+  uint64_t last_step() const { return last_step_; }
+  ReplayResult& result() { return result_; }
+
+ private:
+  std::string path_;
+  std::unique_ptr<recording::Reader> reader_;
+  std::unique_ptr<recording::Record> next_;  // read ahead, not yet applied
+  bool has_next_ = false;
+  bool finished_ = false;
+  uint64_t last_step_ = 0;
+  ReplayResult result_;
 };
 
 // Replays the recording at `path`. Throws recording::RecordingError for a file that is not a

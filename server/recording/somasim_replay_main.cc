@@ -1,5 +1,7 @@
 // somasim-replay FILE: re-runs a recorded session headless from its scene and its recorded
-// inputs and checks that every checkpoint comes out bit for bit (docs/recording.md).
+// inputs and checks that every checkpoint comes out bit for bit (docs/recording.md). With
+// --publish --session NAME it re-publishes the session on DDS in real time (--speed, --from)
+// for viewers and instructors, as a server would.
 // Exit codes: 0 every checkpoint reproduced (a file that ends early replays up to its last
 // good record and says so), 1 a checkpoint differs (the first divergence is printed), 2 a bad
 // command line, 3 a file refused (not a recording, a newer format, a corrupt record: the
@@ -12,6 +14,7 @@
 #include <string>
 
 #include "common/recording/recording_file.h"
+#include "server/app/server_app.h"
 #include "server/recording/replay.h"
 
 int main(int argc, char** argv) {
@@ -20,10 +23,39 @@ int main(int argc, char** argv) {
   CLI::App cli{"somasim-replay: replay a session recording and check it bit for bit"};
   cli.add_option("file", file, "the recording (.somarec)")->required();
   cli.add_option("--report", report, "write the result as JSON here");
+  bool publish = false;
+  somasim::server::ServerOptions options;
+  options.session = "";
+  cli.add_flag("--publish", publish,
+               "re-publish the session on DDS as a server would, so that viewers and instructors "
+               "can watch it (needs --session)");
+  cli.add_option("--session", options.session, "the session (DDS partition) to publish in");
+  cli.add_option("--domain", options.domain, "DDS domain id")->check(CLI::Range(0, 232));
+  cli.add_option("--dds-config", options.dds_config,
+                 "Cyclone DDS XML configuration (deploy/cyclonedds-*.xml)");
+  cli.add_option("--speed", options.speed, "session time per wall-clock time (--publish)")
+      ->check(CLI::Range(0.01, 100.0))
+      ->capture_default_str();
+  cli.add_option("--from", options.replay_from,
+                 "start publishing at the checkpoint nearest to this session time [s] "
+                 "(fast-forwarded to it)")
+      ->check(CLI::Range(0.0, 1e6));
   try {
     cli.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return cli.exit(e) == 0 ? 0 : 2;
+  }
+  if (publish) {
+    if (options.session.empty()) {
+      std::fprintf(stderr, "somasim-replay: --publish needs --session NAME\n");
+      return 2;
+    }
+    options.report = report;
+    return somasim::server::ReplayServerMain(options, file);
+  }
+  if (!options.session.empty() || options.replay_from > 0.0) {
+    std::fprintf(stderr, "somasim-replay: --session and --from go with --publish\n");
+    return 2;
   }
   somasim::server::ReplayResult r;
   try {
