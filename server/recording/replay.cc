@@ -1,6 +1,7 @@
 #include "server/recording/replay.h"
 
-#include <cstring>
+#include <bit>
+#include <cstdint>
 #include <memory>
 #include <stdexcept>
 
@@ -31,11 +32,9 @@ std::string Compare(const recording::Checkpoint& c, const Session& session,
     for (int which = 0; which < 2; ++which) {
       const double* replayed = which == 0 ? s.state->positions.data() : s.state->velocities.data();
       const auto& recorded = which == 0 ? o.positions() : o.velocities();
-      if (std::memcmp(replayed, recorded.data(), sizeof(double) * static_cast<size_t>(n)) == 0) {
-        continue;
-      }
       for (int i = 0; i < n; ++i) {
-        if (std::memcmp(&replayed[i], &recorded[i], sizeof(double)) == 0) continue;
+        // Bit for bit (a NaN never matches, -0 differs from +0).
+        if (std::bit_cast<uint64_t>(replayed[i]) == std::bit_cast<uint64_t>(recorded[i])) continue;
         return "first divergence at " + Where(r) + ": organ " + s.built.id + " node " +
                std::to_string(i / 3) + (which == 0 ? " position" : " velocity") + " " +
                "xyz"[i % 3] + " replayed " + std::to_string(replayed[i]) + ", recorded " +

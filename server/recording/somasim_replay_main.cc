@@ -17,7 +17,9 @@
 #include "server/app/server_app.h"
 #include "server/recording/replay.h"
 
-int main(int argc, char** argv) {
+namespace {
+
+int Run(int argc, char** argv) {
   std::string file;
   std::string report;
   CLI::App cli{"somasim-replay: replay a session recording and check it bit for bit"};
@@ -108,4 +110,17 @@ int main(int argc, char** argv) {
     std::ofstream(report) << j.dump(2) << "\n";
   }
   return r.diverged ? 1 : 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return Run(argc, argv);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "somasim-replay: internal error: %s\n", e.what());
+    return 70;
+  } catch (...) {
+    return 70;
+  }
 }

@@ -22,7 +22,7 @@ std::string TempPath(const std::string& name) {
   const std::string dir =
       std::filesystem::temp_directory_path() / ("somasim-recording-" + std::to_string(::getpid()));
   std::filesystem::create_directories(dir);
-  const std::string path = dir + "/" + name;
+  std::string path = dir + "/" + name;
   std::filesystem::remove(path);
   return path;
 }

@@ -25,7 +25,7 @@ std::string TempPath(const std::string& name) {
   const std::string dir = std::filesystem::temp_directory_path() /
                           ("somasim-session-recording-" + std::to_string(::getpid()));
   std::filesystem::create_directories(dir);
-  const std::string path = dir + "/" + name;
+  std::string path = dir + "/" + name;
   std::filesystem::remove(path);
   return path;
 }
@@ -96,7 +96,7 @@ void PlayScenario(Driver* d) {
 }
 
 std::string RecordScenario(const std::string& name, uint64_t* steps) {
-  const std::string path = TempPath(name);
+  std::string path = TempPath(name);
   Session session(ServerDefaultScene("kidney424"), scene::SceneLines("kidney"), ".");
   Recorder recorder(FileSink(path), Recorder::MakeHeader(session, ".", "rec", "trainee-07", "test"),
                     session);
@@ -126,7 +126,7 @@ TEST(Replay, ARecordedSessionReplaysBitForBit) {
 // unit in the last place.
 std::string WithAChangedCheckpoint(const std::string& path, int which) {
   recording::Reader reader(path);
-  const std::string out = TempPath("changed.somarec");
+  std::string out = TempPath("changed.somarec");
   recording::Writer w(FileSink(out));
   EXPECT_TRUE(w.WriteHeader(reader.header()));
   recording::Record r;
