@@ -555,12 +555,14 @@ TEST(Replay, RefusesWhatIsNotAGoodRecordingWithClearErrors) {
   EXPECT_NE(golden.out.find("replayed 120 steps"), std::string::npos) << golden.out;
 }
 
-TEST(Demo, PalpatingTheLiverRendersForcesAndReportsThem) {
+// The README's demo (demo.txt: palpation, grasp and pull, the incision) on the liver, and its
+// recording replayed bit for bit.
+TEST(Demo, TheLiverDemoRendersForcesReportsThemAndItsRecordingReplaysBitForBit) {
   if (kUnderSanitizer) GTEST_SKIP() << "the 4055-node liver: run in the Release build";
   const std::string dir = TempDir("demo");
   const ToolRun run =
-      RunProgram("somasim-demo", "--duration 7 --script " + std::string(SOMASIM_SCRIPTS_DIR) +
-                                     "/palpate.txt --out " + dir + " --domain 148 --dds-config " +
+      RunProgram("somasim-demo", "--duration 20 --script " + std::string(SOMASIM_SCRIPTS_DIR) +
+                                     "/demo.txt --out " + dir + " --domain 148 --dds-config " +
                                      LoopbackConfigFile());
   ASSERT_EQ(run.status, 0) << run.out << ReadText(dir + "/server.log")
                            << ReadText(dir + "/haptic.log");
