@@ -70,14 +70,14 @@ ToolCommandInput At(const Eigen::Vector3d& tip, uint32_t buttons, uint64_t seq) 
   return c;
 }
 
-// Probing the kidney's top, an incision across it, a reset, probing again: 300 steps.
+// Probing the kidney's top, an incision across it, a reset, probing again: 200 steps.
 void PlayScenario(Driver* d) {
   Session& s = d->session;
   const int32_t probe = s.ToolIndex("probe"), scalpel = s.ToolIndex("scalpel");
   const Eigen::Vector3d top(0.0, 0.0, 0.0224);
   uint64_t seq = 0;
-  for (int i = 0; i < 80; ++i) {
-    d->Command(probe, At(top + Eigen::Vector3d(0, 0, 0.004 - 0.0001 * i), 0, ++seq));
+  for (int i = 0; i < 40; ++i) {
+    d->Command(probe, At(top + Eigen::Vector3d(0, 0, 0.004 - 0.0002 * i), 0, ++seq));
     d->Step();
   }
   d->Command(probe, At(top + Eigen::Vector3d(0, 0, 0.05), 0, ++seq));
@@ -87,10 +87,10 @@ void PlayScenario(Driver* d) {
     d->Step();
   }
   d->Command(scalpel, At(top + Eigen::Vector3d(0.03, 0.0, 0.03), 0, ++seq));
-  for (int i = 0; i < 40; ++i) d->Step();
+  for (int i = 0; i < 20; ++i) d->Step();
   d->Reset();
-  for (int i = 0; i < 99; ++i) {
-    d->Command(probe, At(top + Eigen::Vector3d(0.005, 0, 0.002 - 0.0001 * i), 0, ++seq));
+  for (int i = 0; i < 59; ++i) {
+    d->Command(probe, At(top + Eigen::Vector3d(0.005, 0, 0.002 - 0.0002 * i), 0, ++seq));
     d->Step();
   }
 }
