@@ -244,7 +244,9 @@ TEST(ServerOverDds, ACutIsRepublishedALateJoinerGetsItAndItsRecordingReplaysOnDd
   EXPECT_TRUE(replayed.decoder->has_shape());
   const nlohmann::json rr = ReadJson(dir + "/replay.json");
   EXPECT_FALSE(rr["replay"]["diverged"].get<bool>()) << rr.dump();
-  EXPECT_GE(rr["replay"]["checkpoints_matched"].get<int>(), 3);
+  EXPECT_GE(rr["replay"]["checkpoints_matched"].get<uint64_t>(), 1U);
+  EXPECT_EQ(rr["replay"]["checkpoints_matched"].get<uint64_t>(),
+            report["ticks"].get<uint64_t>() / 100);  // one a second of the kidney's 10 ms
   EXPECT_TRUE(rr["replay"]["ended_cleanly"].get<bool>());
   EXPECT_EQ(rr["organs"][0]["elements_cut"], report["organs"][0]["elements_cut"]);
 }
@@ -548,11 +550,17 @@ TEST(Replay, RefusesWhatIsNotAGoodRecordingWithClearErrors) {
   const ToolRun text = RunProgram("somasim-replay", dir + "/text.somarec");
   EXPECT_EQ(text.status, 3);
   EXPECT_NE(text.out.find("not a somasim recording"), std::string::npos) << text.out;
-  // The golden file replays (its checkpoint may differ as the physics improves: 0 or 1).
+  // The golden file replays to its end, or — its checkpoint at step 100 written by the Release
+  // build of 0.1.0, which another compiler's or a later version's rounding need not reproduce —
+  // stops at that checkpoint naming the divergence.
   const ToolRun golden = RunProgram(
       "somasim-replay", std::string(SOMASIM_TEST_DATA_DIR) + "/recordings/v1_kidney.somarec");
-  EXPECT_TRUE(golden.status == 0 || golden.status == 1) << golden.out;
-  EXPECT_NE(golden.out.find("replayed 120 steps"), std::string::npos) << golden.out;
+  if (golden.status == 0) {
+    EXPECT_NE(golden.out.find("replayed 120 steps"), std::string::npos) << golden.out;
+  } else {
+    EXPECT_EQ(golden.status, 1) << golden.out;
+    EXPECT_NE(golden.out.find("first divergence at step 100"), std::string::npos) << golden.out;
+  }
 }
 
 // The README's demo (demo.txt: palpation, grasp and pull, the incision) on the liver, and its
