@@ -10,10 +10,12 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
-#include <sstream>
 #include <random>
+#include <sstream>
 #include <string>
 #include <vector>
+
+#include "tests/support/full_disk_sink.h"
 
 namespace somasim::recording {
 namespace {
@@ -212,26 +214,8 @@ TEST(RecordingFile, TheGoldenVersion1FileStaysReadable) {
   EXPECT_EQ(ends, 1);
 }
 
-// A sink that takes `room` bytes, then fails as a full disk does.
-class FullDisk final : public Sink {
- public:
-  explicit FullDisk(size_t room) : room_(room) {}
-  bool Write(const void*, size_t size, std::string* error) override {
-    if (size > room_) {
-      *error = std::string("cannot write: ") + std::strerror(ENOSPC);
-      return false;
-    }
-    room_ -= size;
-    return true;
-  }
-  bool Sync(std::string*) override { return true; }
-
- private:
-  size_t room_;
-};
-
 TEST(RecordingFile, AFullDiskIsReportedAndStopsTheWriter) {
-  Writer w(std::make_unique<FullDisk>(400));
+  Writer w(std::make_unique<testing::FullDiskSink>(400));
   ASSERT_TRUE(w.WriteHeader(Header()));
   int written = 0;
   while (w.WriteRecord(Command(static_cast<uint64_t>(written)))) ++written;

@@ -17,6 +17,7 @@
 #include "common/recording/recording_file.h"
 #include "server/recording/replay.h"
 #include "tests/support/allocation_counter.h"
+#include "tests/support/full_disk_sink.h"
 
 namespace somasim::server {
 namespace {
@@ -196,27 +197,9 @@ TEST(Recorder, AFullQueueBecomesAGapRecordNeverASilentHole) {
   EXPECT_TRUE(replay.gap);
 }
 
-// A sink with room for `room` bytes, then ENOSPC (a full disk).
-class FullDisk final : public recording::Sink {
- public:
-  explicit FullDisk(size_t room) : room_(room) {}
-  bool Write(const void*, size_t size, std::string* error) override {
-    if (size > room_) {
-      *error = std::string("cannot write: ") + std::strerror(ENOSPC);
-      return false;
-    }
-    room_ -= size;
-    return true;
-  }
-  bool Sync(std::string*) override { return true; }
-
- private:
-  size_t room_;
-};
-
 TEST(Recorder, AFullDiskStopsTheRecordingAndSaysSoWhileTheSessionGoesOn) {
   Session session(ServerDefaultScene("kidney424"), scene::SceneLines("kidney"), ".");
-  Recorder recorder(std::make_unique<FullDisk>(60000),
+  Recorder recorder(std::make_unique<testing::FullDiskSink>(60000),
                     Recorder::MakeHeader(session, ".", "full", "", "test"), session);
   Driver d{session, recorder};
   for (int i = 0; i < 200 && !recorder.failed(); ++i) {

@@ -164,7 +164,8 @@ TEST(FemCut, ARestMoveThatWouldInvertAnElementIsShortened) {
       d.col(c) = rest.col(mesh.tetrahedra(c + 1, e)) - rest.col(mesh.tetrahedra(0, e));
     Matrix3d d0;
     for (int c = 0; c < 3; ++c) {
-      d0.col(c) = mesh.vertices.col(mesh.tetrahedra(c + 1, e)) - mesh.vertices.col(mesh.tetrahedra(0, e));
+      d0.col(c) =
+          mesh.vertices.col(mesh.tetrahedra(c + 1, e)) - mesh.vertices.col(mesh.tetrahedra(0, e));
     }
     EXPECT_GE(d.determinant(), 0.05 * d0.determinant() * (1 - 1e-12)) << "element " << e;
   }
