@@ -135,7 +135,8 @@ struct Viewer {
   // only meaningful when the server runs on the same host) [ms].
   Recent frame_ms, latency_ms;
   Clock::time_point last_draw{};
-  std::map<std::string, uint64_t> drawn_frame;  // per organ, the frame last drawn
+  std::map<std::string, uint64_t> drawn_frame;      // per organ, the frame last drawn
+  std::map<std::string, uint32_t> logged_topology;  // per organ, the topology version logged
   // Mouse state: the button held, where it was, and whether it drags the driven tool (Shift
   // held when it was pressed).
   int button = -1, last_x = 0, last_y = 0;
@@ -377,6 +378,18 @@ void Display() {
     v.complete_at = Clock::now();
     Log(LogLevel::kInfo, "scene_complete",
         {{"organs", v.receiver->organs().size()}, {"scene", v.receiver->scene_name()}});
+  }
+  if (v.receiver->complete()) {  // each organ's topology as first shown (after a cut: its faces)
+    for (const auto& [id, organ] : v.receiver->organs()) {
+      uint32_t& logged = v.logged_topology[id];
+      if (logged == organ.topology_version) continue;
+      logged = organ.topology_version;
+      Log(LogLevel::kInfo, "topology_shown",
+          {{"organ", id},
+           {"version", organ.topology_version},
+           {"triangles", organ.triangles.size() / 3},
+           {"inner_faces", std::count(organ.inner_face.begin(), organ.inner_face.end(), 1)}});
+    }
   }
   if (!v.camera.fitted) {
     // Framed on the rest shapes: every viewer of the session frames it alike, however late it
