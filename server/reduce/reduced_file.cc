@@ -1,0 +1,269 @@
+#include "server/reduce/reduced_file.h"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <bit>
+#include <cerrno>
+#include <cstring>
+#include <fstream>
+#include <sstream>
+#include <utility>
+#include <vector>
+
+#include "common/recording/recording_file.h"
+
+namespace somasim::reduce {
+namespace {
+
+using models::reduced::CreepCurve;
+using models::reduced::KlModelData;
+
+void PutU32(uint32_t v, std::string* out) {
+  for (int i = 0; i < 4; ++i) out->push_back(static_cast<char>((v >> (8 * i)) & 0xFFU));
+}
+
+uint32_t GetU32(const std::string& in, size_t at) {
+  uint32_t v = 0;
+  for (int i = 0; i < 4; ++i) {
+    v |= static_cast<uint32_t>(static_cast<uint8_t>(in[at + static_cast<size_t>(i)])) << (8 * i);
+  }
+  return v;
+}
+
+// Doubles as little-endian bytes (this code runs on little-endian x86-64 and ARM: a memcpy).
+static_assert(std::endian::native == std::endian::little, "little-endian hosts only");
+
+uint32_t Crc(const char* data, size_t size) {
+  return recording::Crc32({reinterpret_cast<const uint8_t*>(data), size});
+}
+
+struct Array {
+  std::string name;
+  const double* data;
+  size_t rows, cols;
+};
+
+}  // namespace
+
+std::string MeshHash(const mesh::TetMesh& mesh) {
+  std::string bytes(reinterpret_cast<const char*>(mesh.vertices.data()),
+                    sizeof(double) * static_cast<size_t>(mesh.vertices.size()));
+  bytes.append(reinterpret_cast<const char*>(mesh.tetrahedra.data()),
+               sizeof(int32_t) * static_cast<size_t>(mesh.tetrahedra.size()));
+  return recording::TextHash(bytes);
+}
+
+std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata, const KlModelData& data) {
+  std::vector<double> creep;
+  metadata.clear_creep();
+  for (const CreepCurve& c : data.creep) {
+    reduced::CreepCurveInfo* info = metadata.add_creep();
+    info->set_node(c.node);
+    info->set_interval_s(c.interval);
+    info->set_samples(c.multiplier.size());
+    creep.insert(creep.end(), c.multiplier.begin(), c.multiplier.end());
+  }
+  metadata.set_creep_radius_m(data.creep_radius);
+  metadata.set_penalty_stiffness(data.penalty_stiffness);
+  metadata.set_max_local_stiffness(data.max_local_stiffness);
+  const std::vector<Array> arrays = {
+      {"rest", data.rest.data(), 3, static_cast<size_t>(data.rest.cols())},
+      {"masses", data.masses.data(), data.masses.size(), 1},
+      {"modes", data.modes.data(), static_cast<size_t>(data.modes.rows()),
+       static_cast<size_t>(data.modes.cols())},
+      {"stiffness_modes", data.stiffness_modes.data(),
+       static_cast<size_t>(data.stiffness_modes.rows()),
+       static_cast<size_t>(data.stiffness_modes.cols())},
+      {"reduced_stiffness", data.reduced_stiffness.data(),
+       static_cast<size_t>(data.reduced_stiffness.rows()),
+       static_cast<size_t>(data.reduced_stiffness.cols())},
+      {"creep", creep.data(), creep.size(), 1}};
+  metadata.clear_arrays();
+  std::string body;
+  for (const Array& a : arrays) {
+    const auto* bytes = reinterpret_cast<const char*>(a.data);
+    const size_t size = sizeof(double) * a.rows * a.cols;
+    reduced::ArrayInfo* info = metadata.add_arrays();
+    info->set_name(a.name);
+    info->set_rows(a.rows);
+    info->set_cols(a.cols);
+    info->set_crc32(Crc(bytes, size));
+    body.append(bytes, size);
+  }
+  std::string meta;
+  metadata.SerializeToString(&meta);
+  std::string out(kReducedMagic, sizeof kReducedMagic);
+  PutU32(kReducedFormatVersion, &out);
+  PutU32(static_cast<uint32_t>(meta.size()), &out);
+  PutU32(Crc(meta.data(), meta.size()), &out);
+  out += meta;
+  out += body;
+  return out;
+}
+
+void WriteReducedModel(const std::string& path, const reduced::ReducedModelMetadata& metadata,
+                       const KlModelData& data) {
+  const std::string bytes = EncodeReducedModel(metadata, data);
+  const int fd = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
+  if (fd < 0) {
+    throw ReducedFileError("cannot create " + path + ": " + std::strerror(errno) +
+                           (errno == EEXIST ? " (a reduced model is never overwritten)" : ""));
+  }
+  size_t at = 0;
+  while (at < bytes.size()) {
+    const ssize_t n = ::write(fd, bytes.data() + at, bytes.size() - at);
+    if (n < 0 && errno == EINTR) continue;
+    if (n <= 0) {
+      const int error = n < 0 ? errno : EIO;
+      ::close(fd);
+      ::unlink(path.c_str());
+      throw ReducedFileError("cannot write " + path + ": " + std::strerror(error));
+    }
+    at += static_cast<size_t>(n);
+  }
+  if (::fsync(fd) != 0 && errno != EINVAL && errno != EROFS) {
+    const int error = errno;
+    ::close(fd);
+    ::unlink(path.c_str());
+    throw ReducedFileError("cannot fsync " + path + ": " + std::strerror(error));
+  }
+  ::close(fd);
+}
+
+LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::string& name,
+                                      const mesh::TetMesh* mesh) {
+  const auto fail = [&name](const std::string& what) {
+    throw ReducedFileError(name + ": " + what);
+  };
+  constexpr size_t kPreamble = sizeof kReducedMagic + 12;
+  if (bytes.size() < sizeof kReducedMagic ||
+      std::memcmp(bytes.data(), kReducedMagic, sizeof kReducedMagic) != 0) {
+    fail("not a somasim reduced model (no SOMARED magic)");
+  }
+  if (bytes.size() < kPreamble) fail("truncated at byte " + std::to_string(bytes.size()));
+  const uint32_t version = GetU32(bytes, 8);
+  if (version != kReducedFormatVersion) {
+    fail("format version " + std::to_string(version) + "; this build reads version " +
+         std::to_string(kReducedFormatVersion) +
+         (version > kReducedFormatVersion ? " (made by a newer somasim)" : ""));
+  }
+  const size_t meta_size = GetU32(bytes, 12);
+  if (bytes.size() < kPreamble + meta_size) {
+    fail("truncated at byte " + std::to_string(bytes.size()) + " (the metadata ends at " +
+         std::to_string(kPreamble + meta_size) + ")");
+  }
+  if (Crc(bytes.data() + kPreamble, meta_size) != GetU32(bytes, 16)) {
+    fail("the metadata's checksum does not match");
+  }
+  LoadedReducedModel out;
+  if (!out.metadata.ParseFromArray(bytes.data() + kPreamble, static_cast<int>(meta_size))) {
+    fail("the metadata does not parse");
+  }
+  const reduced::ReducedModelMetadata& m = out.metadata;
+  if (m.kind() != "kl_seed000") fail("unknown reduced model kind '" + m.kind() + "'");
+  // The arrays, each checked before it is used.
+  size_t at = kPreamble + meta_size;
+  std::vector<std::vector<double>> arrays;
+  const std::vector<std::string> names = {
+      "rest", "masses", "modes", "stiffness_modes", "reduced_stiffness", "creep"};
+  if (m.arrays_size() != static_cast<int>(names.size())) {
+    fail("lists " + std::to_string(m.arrays_size()) + " arrays, not " +
+         std::to_string(names.size()));
+  }
+  for (int k = 0; k < m.arrays_size(); ++k) {
+    const reduced::ArrayInfo& a = m.arrays(k);
+    if (a.name() != names[static_cast<size_t>(k)]) {
+      fail("array " + std::to_string(k) + " is '" + a.name() + "', not '" +
+           names[static_cast<size_t>(k)] + "'");
+    }
+    if (a.rows() > (1ULL << 28) || a.cols() > (1ULL << 20) || a.rows() * a.cols() > (1ULL << 31)) {
+      fail("array '" + a.name() + "' is implausibly large (" + std::to_string(a.rows()) + " × " +
+           std::to_string(a.cols()) + ")");
+    }
+    const size_t size = sizeof(double) * a.rows() * a.cols();
+    if (bytes.size() < at + size) {
+      fail("truncated at byte " + std::to_string(bytes.size()) + " (array '" + a.name() +
+           "' ends at " + std::to_string(at + size) + ")");
+    }
+    if (Crc(bytes.data() + at, size) != a.crc32()) {
+      fail("array '" + a.name() + "' fails its checksum (at byte " + std::to_string(at) + ")");
+    }
+    std::vector<double> values(a.rows() * a.cols());
+    std::memcpy(values.data(), bytes.data() + at, size);
+    arrays.push_back(std::move(values));
+    at += size;
+  }
+  if (at != bytes.size()) {
+    fail(std::to_string(bytes.size() - at) + " bytes after the last array");
+  }
+  const auto shape = [&](int k) { return std::make_pair(m.arrays(k).rows(), m.arrays(k).cols()); };
+  const uint64_t nodes = m.num_nodes();
+  const uint64_t n = m.arrays(2).cols();
+  if (shape(0) != std::make_pair<uint64_t, uint64_t>(3, uint64_t{nodes})) {
+    fail("'rest' is not 3 × num_nodes (" + std::to_string(nodes) + ")");
+  }
+  if (shape(1) != std::make_pair<uint64_t, uint64_t>(uint64_t{nodes}, 1)) {
+    fail("'masses' is not num_nodes × 1");
+  }
+  if (shape(2).first != 3 * nodes || n < 1) fail("'modes' is not 3 num_nodes × n");
+  if (shape(3) != shape(2)) fail("'stiffness_modes' does not have the modes' shape");
+  if (shape(4) != std::make_pair<uint64_t, uint64_t>(uint64_t{n}, uint64_t{n})) {
+    fail("'reduced_stiffness' is not n × n (n = " + std::to_string(n) + ")");
+  }
+  uint64_t samples = 0;
+  for (const reduced::CreepCurveInfo& c : m.creep()) samples += c.samples();
+  if (shape(5) != std::make_pair<uint64_t, uint64_t>(uint64_t{samples}, 1)) {
+    fail("'creep' holds " + std::to_string(m.arrays(5).rows()) + " samples; the curves list " +
+         std::to_string(samples));
+  }
+  if (mesh != nullptr) {
+    if (static_cast<uint64_t>(mesh->vertices.cols()) != nodes ||
+        static_cast<uint64_t>(mesh->tetrahedra.cols()) != m.num_tets()) {
+      fail("made for a mesh of " + std::to_string(nodes) + " nodes and " +
+           std::to_string(m.num_tets()) + " tetrahedra; the organ's has " +
+           std::to_string(mesh->vertices.cols()) + " and " +
+           std::to_string(mesh->tetrahedra.cols()));
+    }
+    const std::string hash = MeshHash(*mesh);
+    if (hash != m.mesh_hash()) {
+      fail("made for another mesh (mesh hash " + m.mesh_hash() + "; the organ's is " + hash + ")");
+    }
+  }
+  KlModelData data;
+  const auto en = static_cast<Eigen::Index>(nodes), ek = static_cast<Eigen::Index>(n);
+  data.rest = Eigen::Map<const mesh::Points>(arrays[0].data(), 3, en);
+  data.masses = arrays[1];
+  data.modes = Eigen::Map<const Eigen::MatrixXd>(arrays[2].data(), 3 * en, ek);
+  data.stiffness_modes = Eigen::Map<const Eigen::MatrixXd>(arrays[3].data(), 3 * en, ek);
+  data.reduced_stiffness = Eigen::Map<const Eigen::MatrixXd>(arrays[4].data(), ek, ek);
+  size_t sample = 0;
+  for (const reduced::CreepCurveInfo& c : m.creep()) {
+    CreepCurve curve;
+    curve.node = c.node();
+    curve.interval = c.interval_s();
+    curve.multiplier.assign(arrays[5].begin() + static_cast<std::ptrdiff_t>(sample),
+                            arrays[5].begin() + static_cast<std::ptrdiff_t>(sample + c.samples()));
+    sample += c.samples();
+    data.creep.push_back(std::move(curve));
+  }
+  data.creep_radius = m.creep_radius_m();
+  data.penalty_stiffness = m.penalty_stiffness();
+  data.max_local_stiffness = m.max_local_stiffness();
+  try {
+    out.model = models::reduced::KlReducedModel::Create(std::move(data));
+  } catch (const std::invalid_argument& e) {
+    fail(e.what());
+  }
+  return out;
+}
+
+LoadedReducedModel LoadReducedModel(const std::string& path, const mesh::TetMesh* mesh) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw ReducedFileError("cannot read " + path + ": " + std::strerror(errno));
+  std::ostringstream text;
+  text << in.rdbuf();
+  return DecodeReducedModel(text.str(), path, mesh);
+}
+
+}  // namespace somasim::reduce

@@ -1,0 +1,173 @@
+// The reduced-model file (server/reduce/reduced_file.h): a round trip keeps every array bit for
+// bit; a file that is truncated anywhere, corrupted anywhere, of another version, for another
+// mesh, inconsistent or holding a model that is not one is refused with its reason.
+#include "server/reduce/reduced_file.h"
+
+#include <gtest/gtest.h>
+
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <string>
+
+#include "common/mesh_gen/structured_meshes.h"
+#include "server/models/fem/fem_model.h"
+#include "server/models/reduced/pod.h"
+#include "server/models/reduced/reduce_fem.h"
+
+namespace somasim::reduce {
+namespace {
+
+using Eigen::Vector3d;
+using models::reduced::KlModelData;
+
+struct Fixture {
+  Fixture() {
+    mesh = mesh_gen::BoxGridTets(5, 3, 3, Vector3d::Zero(), Vector3d(0.08, 0.03, 0.03));
+    models::fem::FemParameters p;
+    p.kind = models::fem::FemKind::kLinear;
+    p.youngs_modulus = 5000.0;
+    p.poisson_ratio = 0.4;
+    const auto fem = models::fem::FemModel::FromTetMesh(mesh, p);
+    // Modes: three smooth fields (not a solution: the file does not care), zero at x = 0.
+    Eigen::MatrixXd q(3 * fem->num_nodes(), 3);
+    for (int32_t i = 0; i < fem->num_nodes(); ++i) {
+      const double x = mesh.vertices(0, i);
+      for (int a = 0; a < 3; ++a) {
+        q(3 * i + a, 0) = a == 2 ? x * x : 0.0;
+        q(3 * i + a, 1) = a == 1 ? x * x * x : 0.0;
+        q(3 * i + a, 2) = a == 0 ? x : 0.1 * x * mesh.vertices(1, i);
+      }
+    }
+    models::reduced::PodSettings settings;
+    settings.energy_fraction = 1.0;
+    data = models::reduced::KlDataFromFem(*fem, mesh.vertices,
+                                          models::reduced::ModesOfSnapshots(q, settings).modes);
+    data.creep = {{7, 0.5, {1.0, 1.3, 1.4}}, {12, 0.25, {1.0, 1.1}}};
+    metadata.set_kind("kl_seed000");
+    metadata.set_organ("beam");
+    metadata.set_mesh("test beam");
+    metadata.set_mesh_hash(MeshHash(mesh));
+    metadata.set_num_nodes(static_cast<uint64_t>(mesh.vertices.cols()));
+    metadata.set_num_tets(static_cast<uint64_t>(mesh.tetrahedra.cols()));
+    metadata.set_command("test");
+  }
+  std::string Bytes() const { return EncodeReducedModel(metadata, data); }
+  mesh::TetMesh mesh;
+  KlModelData data;
+  reduced::ReducedModelMetadata metadata;
+};
+
+std::string Refusal(const std::string& bytes, const mesh::TetMesh* mesh) {
+  try {
+    DecodeReducedModel(bytes, "f.somared", mesh);
+  } catch (const ReducedFileError& e) {
+    return e.what();
+  }
+  return "accepted";
+}
+
+TEST(ReducedFile, RoundTripKeepsEveryArrayBitForBit) {
+  const Fixture f;
+  const std::string path = (std::filesystem::temp_directory_path() /
+                            ("reduced-" + std::to_string(::getpid()) + ".somared"))
+                               .string();
+  std::filesystem::remove(path);
+  WriteReducedModel(path, f.metadata, f.data);
+  const LoadedReducedModel loaded = LoadReducedModel(path, &f.mesh);
+  const KlModelData& d = loaded.model->data();
+  EXPECT_EQ(d.rest, f.data.rest);
+  EXPECT_EQ(d.masses, f.data.masses);
+  EXPECT_EQ(d.modes, f.data.modes);
+  EXPECT_EQ(d.stiffness_modes, f.data.stiffness_modes);
+  EXPECT_EQ(d.reduced_stiffness, f.data.reduced_stiffness);
+  ASSERT_EQ(d.creep.size(), 2u);
+  EXPECT_EQ(d.creep[1].node, 12);
+  EXPECT_EQ(d.creep[1].interval, 0.25);
+  EXPECT_EQ(d.creep[0].multiplier, f.data.creep[0].multiplier);
+  EXPECT_EQ(loaded.metadata.organ(), "beam");
+  EXPECT_EQ(loaded.model->num_modes(), 3);
+  // Never overwritten.
+  try {
+    WriteReducedModel(path, f.metadata, f.data);
+    ADD_FAILURE() << "overwrote " << path;
+  } catch (const ReducedFileError& e) {
+    EXPECT_NE(std::string(e.what()).find("never overwritten"), std::string::npos) << e.what();
+  }
+  std::filesystem::remove(path);
+  EXPECT_NE(Refusal("", nullptr).find("no SOMARED magic"), std::string::npos);
+  try {
+    LoadReducedModel(path, nullptr);
+    ADD_FAILURE();
+  } catch (const ReducedFileError& e) {
+    EXPECT_NE(std::string(e.what()).find("cannot read"), std::string::npos);
+  }
+}
+
+TEST(ReducedFile, RefusesATruncatedFileAtEveryLength) {
+  const Fixture f;
+  const std::string bytes = f.Bytes();
+  for (size_t n = 0; n < bytes.size(); n += (n < 64 ? 1 : 97)) {
+    const std::string why = Refusal(bytes.substr(0, n), &f.mesh);
+    EXPECT_TRUE(why.find("truncated at byte " + std::to_string(n)) != std::string::npos ||
+                (n < 8 && why.find("magic") != std::string::npos))
+        << n << ": " << why;
+  }
+  EXPECT_NE(Refusal(bytes + "x", &f.mesh).find("1 bytes after the last array"), std::string::npos);
+}
+
+TEST(ReducedFile, RefusesACorruptedByteAnywhere) {
+  const Fixture f;
+  const std::string bytes = f.Bytes();
+  for (size_t at = 20; at < bytes.size(); at += 131) {
+    std::string bad = bytes;
+    bad[at] = static_cast<char>(bad[at] ^ 0x10);
+    const std::string why = Refusal(bad, &f.mesh);
+    EXPECT_TRUE(why.find("checksum") != std::string::npos) << at << ": " << why;
+  }
+  std::string version = bytes;
+  version[8] = 2;
+  EXPECT_NE(Refusal(version, &f.mesh)
+                .find("format version 2; this build reads version 1 (made "
+                      "by a newer somasim)"),
+            std::string::npos);
+}
+
+TEST(ReducedFile, RefusesAFileMadeForAnotherMesh) {
+  const Fixture f;
+  const std::string bytes = f.Bytes();
+  mesh::TetMesh moved = f.mesh;
+  moved.vertices(2, 5) += 1e-6;
+  EXPECT_NE(Refusal(bytes, &moved).find("made for another mesh (mesh hash"), std::string::npos);
+  const mesh::TetMesh other =
+      mesh_gen::BoxGridTets(6, 3, 3, Vector3d::Zero(), Vector3d(0.08, 0.03, 0.03));
+  EXPECT_NE(Refusal(bytes, &other).find("made for a mesh of 45 nodes"), std::string::npos);
+  EXPECT_EQ(Refusal(bytes, nullptr), "accepted");
+}
+
+TEST(ReducedFile, RefusesInconsistentMetadataAndBadModelsByName) {
+  const Fixture f;
+  Fixture g;
+  g.metadata.set_num_nodes(44);
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("'rest' is not 3 × num_nodes (44)"),
+            std::string::npos);
+  g = Fixture();
+  g.metadata.set_kind("pca");
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("unknown reduced model kind 'pca'"),
+            std::string::npos);
+  g = Fixture();
+  g.data.reduced_stiffness(1, 1) = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("reduced stiffness is not finite"), std::string::npos);
+  g = Fixture();
+  g.data.creep[1].node = 4000;
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("creep curve 1: node 4000 out of range"),
+            std::string::npos);
+  g = Fixture();
+  g.data.reduced_stiffness.conservativeResize(2, 2);
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("'reduced_stiffness' is not n × n (n = 3)"),
+            std::string::npos);
+}
+
+}  // namespace
+}  // namespace somasim::reduce
