@@ -287,8 +287,8 @@ void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) 
   const Model& model = organ.model();
   if (model.kind_case() == Model::KIND_NOT_SET) {
     m.FailHere(
-        "needs a kind: mass_spring, molecular, position_based, fem_linear, fem_corotational or "
-        "fem_hyperelastic");
+        "needs a kind: mass_spring, molecular, position_based, fem_linear, fem_corotational, "
+        "fem_hyperelastic or reduced_kl");
   }
   m.NonNegative("dt", model.dt());
   m.NonNegative("solver_tolerance", model.solver_tolerance());
@@ -300,7 +300,13 @@ void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) 
   if (model.has_position_based() && model.position_based().iterations() < 0) {
     m.Child("position_based", model.position_based()).Fail("iterations", "must be >= 0");
   }
-  CheckMaterial(o.Child("material", organ.material()), organ.material(), model);
+  if (model.has_reduced_kl()) {  // the material is in the reduced model's file
+    if (model.reduced_kl().file().empty()) {
+      m.Child("reduced_kl", model.reduced_kl()).Fail("file", "is empty");
+    }
+  } else {
+    CheckMaterial(o.Child("material", organ.material()), organ.material(), model);
+  }
   for (int k = 0; k < organ.fixed_size(); ++k) {
     CheckRegion(o.Child("fixed", organ.fixed(k), k), organ.fixed(k));
   }
@@ -374,6 +380,40 @@ void CheckScene(const Where& s, const Scene& scene) {
       break;
     case Analysis::KIND_NOT_SET:
       break;  // the server runs the scene interactively
+  }
+  std::set<std::string> reduced;
+  for (int k = 0; k < scene.reduction_size(); ++k) {
+    const Reduction& r = scene.reduction(k);
+    const Where w = s.Child("reduction", r, k);
+    if (organ_ids.count(r.organ()) == 0) {
+      w.Fail("organ", "\"" + r.organ() + "\" is not an organ of the scene");
+    }
+    if (!reduced.insert(r.organ()).second) w.Fail("organ", "has another reduction");
+    for (int i = 0; i < scene.organ_size(); ++i) {
+      if (scene.organ(i).id() == r.organ() && !IsFemModel(scene.organ(i).model())) {
+        w.Fail("organ", "\"" + r.organ() + "\" needs a FEM model to be reduced");
+      }
+    }
+    if (r.interaction_size() == 0) w.FailHere("needs an interaction region");
+    for (int i = 0; i < r.interaction_size(); ++i) {
+      CheckRegion(w.Child("interaction", r.interaction(i), i), r.interaction(i));
+    }
+    if (r.points_per_region() < 0) w.Fail("points_per_region", "must be >= 0");
+    for (int i = 0; i < r.force_size(); ++i) {
+      if (!(r.force(i) > 0.0) || !std::isfinite(r.force(i))) {
+        w.Fail("force", "must be a finite value > 0", i);
+      }
+    }
+    if (r.directions() != 0 && r.directions() != 1 && r.directions() != 3) {
+      w.Fail("directions", "must be 1 (the inward normal) or 3 (and two tangents)");
+    }
+    w.NonNegative("creep_duration", r.creep_duration());
+    w.NonNegative("creep_interval", r.creep_interval());
+    if (!(r.energy_fraction() >= 0.0 && r.energy_fraction() <= 1.0)) {
+      w.Fail("energy_fraction", "must lie in [0, 1] (0: the default 0.9999)");
+    }
+    if (r.max_modes() < 0) w.Fail("max_modes", "must be >= 0");
+    w.NonNegative("creep_radius", r.creep_radius());
   }
   const Output& output = scene.output();
   for (int k = 0; k < output.time_size(); ++k) {

@@ -12,6 +12,7 @@
 #include "server/models/mass_spring_model.h"
 #include "server/models/molecular_model.h"
 #include "server/models/position_based_model.h"
+#include "server/reduce/reduced_file.h"
 
 namespace somasim::solve {
 namespace {
@@ -32,6 +33,8 @@ const char* ModelName(const Model& model) {
       return "fem_corotational";
     case Model::kFemHyperelastic:
       return "fem_hyperelastic";
+    case Model::kReducedKl:
+      return "reduced_kl";
     case Model::KIND_NOT_SET:
       break;
   }
@@ -313,6 +316,7 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
   out.field = "organ[" + std::to_string(index) + "]";
   out.model_name = ModelName(organ.model());
   const bool fem = scene::IsFemModel(organ.model());
+  const bool volume_model = fem || organ.model().has_reduced_kl();  // needs tetrahedra
   mesh::SurfaceMesh surface;
   if (organ.mesh_case() == scene::Organ::kBuiltin) {
     out.mesh_name = "builtin:" + organ.builtin();
@@ -321,11 +325,11 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
     if (spec == nullptr) throw lines.Error(out.field + ".builtin", "unknown organ");
     if (spec->kind == mesh_gen::OrganKind::kVolume) {
       out.volume = mesh_gen::GenerateBuiltinOrgan(spec->name).volume;
-    } else if (fem) {
+    } else if (volume_model) {
       if (spec->kind == mesh_gen::OrganKind::kOpenSurface) {
         throw lines.Error(out.field + ".builtin",
                           std::string(spec->name) +
-                              " is an open surface and bounds no volume: FEM models need "
+                              " is an open surface and bounds no volume: FEM and reduced models need "
                               "tetrahedra (use a particle model)");
       }
       // A closed surface filled with tetrahedra (a new node numbering: see builtin_organs.h).
@@ -345,10 +349,10 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
     if (data.tetrahedra.cols() > 0) {
       out.volume.vertices = std::move(data.vertices);
       out.volume.tetrahedra = std::move(data.tetrahedra);
-    } else if (fem) {
+    } else if (volume_model) {
       throw lines.Error(out.field + ".file",
                         "\"" + organ.file() +
-                            "\" holds no tetrahedra: FEM models need a volume mesh (fill a "
+                            "\" holds no tetrahedra: FEM and reduced models need a volume mesh (fill a "
                             "closed surface with: somasim-mesh tetrahedralize)");
     } else {
       surface.vertices = std::move(data.vertices);
@@ -376,6 +380,14 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
       auto model = models::fem::FemModel::FromTetMesh(out.volume, FemParametersOf(organ));
       out.fem = model.get();
       out.model = std::move(model);
+    } else if (organ.model().has_reduced_kl()) {
+      std::filesystem::path path(organ.model().reduced_kl().file());
+      if (path.is_relative()) path = std::filesystem::path(scene_dir) / path;
+      try {
+        out.model = reduce::LoadReducedModel(path.string(), &out.volume).model;
+      } catch (const reduce::ReducedFileError& e) {
+        throw lines.Error(out.field + ".model.reduced_kl.file", e.what());
+      }
     } else {
       out.model = MakeParticleModel(organ, out.volume, surface);
     }

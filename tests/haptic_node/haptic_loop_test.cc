@@ -384,6 +384,9 @@ TEST(LatestSlot, AReaderUnderAConcurrentWriterNeverSeesATornValue) {
       }
     }
   });
+  // The writer's first value, before counting (on a loaded machine the reads could otherwise
+  // all finish before the writer thread first runs).
+  while (!slot.Read(&v, &version) || version == 0) std::this_thread::yield();
   const int reads = testing::kUnderSanitizer ? 100000 : 2000000;
   int ok = 0;
   uint64_t last = 0;

@@ -1,0 +1,202 @@
+#include "server/reduce/builder.h"
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <set>
+#include <stdexcept>
+#include <utility>
+
+#include "common/mesh/topology.h"
+#include "server/models/reduced/reduce_fem.h"
+
+namespace somasim::reduce {
+namespace {
+
+using models::fem::FemModel;
+using models::fem::StaticLoads;
+using models::fem::StaticWorkspace;
+using models::reduced::StaticCase;
+
+void Require(bool ok, const std::string& what) {
+  if (!ok) throw std::invalid_argument("sampling plan: " + what);
+}
+
+// Two unit tangents orthogonal to n (unit).
+std::pair<Eigen::Vector3d, Eigen::Vector3d> Tangents(const Eigen::Vector3d& n) {
+  const Eigen::Vector3d helper =
+      std::abs(n.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
+  const Eigen::Vector3d t1 = n.cross(helper).normalized();
+  return {t1, n.cross(t1)};
+}
+
+}  // namespace
+
+mesh::Points BoundaryNormals(const mesh::TetMesh& mesh) {
+  const mesh::SurfaceMesh surface = mesh::ExtractBoundarySurface(mesh);
+  mesh::Points normals = mesh::Points::Zero(3, mesh.vertices.cols());
+  for (Eigen::Index t = 0; t < surface.triangles.cols(); ++t) {
+    const auto v = surface.triangles.col(t);
+    const Eigen::Vector3d a = mesh.vertices.col(v(0));
+    const Eigen::Vector3d n = (Eigen::Vector3d(mesh.vertices.col(v(1))) - a)
+                                  .cross(Eigen::Vector3d(mesh.vertices.col(v(2))) - a);
+    for (int k = 0; k < 3; ++k) normals.col(v(k)) += n;
+  }
+  for (Eigen::Index i = 0; i < normals.cols(); ++i) {
+    const double norm = normals.col(i).norm();
+    if (norm > 0.0) normals.col(i) /= norm;
+  }
+  return normals;
+}
+
+BuildReport BuildKlModel(const FemModel& full, const mesh::TetMesh& mesh, const SamplingPlan& plan,
+                         const std::function<void(const BuildProgress&)>& progress) {
+  const auto started = std::chrono::steady_clock::now();
+  const int32_t nodes = full.num_nodes();
+  Require(mesh.vertices.cols() == nodes, "the mesh is not the model's");
+  Require(!plan.points.empty(), "no sample point");
+  Require(!plan.fixed.empty(), "no support (fixed nodes): the organ would float");
+  Require(!plan.forces.empty(), "no force magnitude");
+  for (const double f : plan.forces) {
+    Require(std::isfinite(f) && f > 0.0, "a force magnitude is not > 0");
+  }
+  Require(plan.directions == 1 || plan.directions == 3, "directions must be 1 or 3");
+  Require(std::isfinite(plan.creep_duration) && plan.creep_duration >= 0.0,
+          "creep_duration must be >= 0");
+  Require(std::isfinite(plan.creep_interval) && plan.creep_interval > 0.0,
+          "creep_interval must be > 0");
+  Require(plan.load_steps > 0, "load_steps must be > 0");
+  std::set<int32_t> held;
+  for (const int32_t n : plan.fixed) {
+    Require(n >= 0 && n < nodes, "fixed node " + std::to_string(n) + " out of range");
+    held.insert(n);
+  }
+  const mesh::Points normals = BoundaryNormals(mesh);
+  for (const int32_t p : plan.points) {
+    Require(p >= 0 && p < nodes, "point " + std::to_string(p) + " out of range");
+    Require(held.count(p) == 0, "point " + std::to_string(p) + " is held");
+    Require(normals.col(p).squaredNorm() > 0.5,
+            "point " + std::to_string(p) + " is not on the boundary");
+  }
+  const auto report = [&](const char* stage, size_t done, size_t total) {
+    if (progress) progress({stage, done, total});
+  };
+
+  BuildReport out;
+  StaticWorkspace workspace;
+  std::vector<Eigen::VectorXd> snapshots;
+  const auto solve = [&](const mesh::Points& forces, mesh::Points* displacement) {
+    StaticLoads loads;
+    loads.external_forces = &forces;
+    loads.fixed_nodes = plan.fixed;
+    loads.load_steps = plan.load_steps;
+    auto state = full.MakeState();
+    const models::fem::StaticResult r = full.SolveStatic(loads, state.get(), &workspace);
+    *displacement = state->positions - full.rest_positions();
+    return r.converged;
+  };
+  // Elastic static snapshots.
+  std::vector<std::pair<int32_t, Eigen::Vector3d>> loads;  // (point, unit direction)
+  for (const int32_t p : plan.points) {
+    const Eigen::Vector3d inward = -Eigen::Vector3d(normals.col(p));
+    loads.emplace_back(p, inward);
+    if (plan.directions == 3) {
+      const auto [t1, t2] = Tangents(inward);
+      loads.emplace_back(p, t1);
+      loads.emplace_back(p, t2);
+    }
+  }
+  const size_t total = loads.size() * plan.forces.size();
+  std::vector<mesh::Points> level_states;  // the first point's normal load at each magnitude
+  for (size_t l = 0; l < loads.size(); ++l) {
+    for (size_t m = 0; m < plan.forces.size(); ++m) {
+      StaticCase c;
+      c.forces = mesh::Points::Zero(3, nodes);
+      c.forces.col(loads[l].first) = plan.forces[m] * loads[l].second;
+      if (!solve(c.forces, &c.displacement)) {
+        ++out.unconverged;
+      } else {
+        snapshots.emplace_back(
+            Eigen::Map<const Eigen::VectorXd>(c.displacement.data(), c.displacement.size()));
+        if (l == 0) level_states.push_back(full.rest_positions() + c.displacement);
+        out.cases.push_back(std::move(c));
+      }
+      report("snapshots", l * plan.forces.size() + m + 1, total);
+    }
+  }
+  Require(!out.cases.empty(), "no full solve converged");
+  // Creep curves (QLV): 1 N along each point's inward normal, held.
+  const auto steps = static_cast<size_t>(std::llround(plan.creep_duration / plan.creep_interval));
+  if (full.num_prony_terms() > 0 && steps > 0) {
+    for (size_t k = 0; k < plan.points.size(); ++k) {
+      const int32_t p = plan.points[k];
+      const Eigen::Vector3d inward = -Eigen::Vector3d(normals.col(p));
+      mesh::Points forces = mesh::Points::Zero(3, nodes);
+      forces.col(p) = inward;
+      mesh::Points elastic;
+      if (!solve(forces, &elastic)) {
+        ++out.unconverged;
+        continue;
+      }
+      const double u0 = elastic.col(p).norm();
+      models::reduced::CreepCurve curve;
+      curve.node = p;
+      curve.interval = plan.creep_interval;
+      curve.multiplier.push_back(1.0);
+      StaticLoads held_load;
+      held_load.external_forces = &forces;
+      held_load.fixed_nodes = plan.fixed;
+      held_load.reuse_factorisation = true;
+      auto state = full.MakeState();
+      StaticWorkspace creep_workspace;
+      bool ok = true;
+      for (size_t s = 0; s < steps && ok; ++s) {
+        ok = full.SolveQuasiStatic(held_load, plan.creep_interval, state.get(), &creep_workspace)
+                 .converged;
+        curve.multiplier.push_back((state->positions.col(p) - full.rest_positions().col(p)).norm() /
+                                   u0);
+      }
+      if (!ok) {
+        ++out.unconverged;
+        continue;
+      }
+      const mesh::Points last = state->positions - full.rest_positions();
+      snapshots.emplace_back(Eigen::Map<const Eigen::VectorXd>(last.data(), last.size()));
+      out.data.creep.push_back(std::move(curve));
+      report("creep", k + 1, plan.points.size());
+    }
+  }
+  // Modes.
+  report("modes", 0, 1);
+  Eigen::MatrixXd q(3 * static_cast<Eigen::Index>(nodes),
+                    static_cast<Eigen::Index>(snapshots.size()));
+  for (size_t s = 0; s < snapshots.size(); ++s) q.col(static_cast<Eigen::Index>(s)) = snapshots[s];
+  out.snapshots = snapshots.size();
+  models::reduced::PodModes pod = models::reduced::ModesOfSnapshots(q, plan.pod);
+  out.eigenvalues = pod.eigenvalues;
+  out.kept_fraction = pod.kept_fraction;
+  report("modes", 1, 1);
+  // K among the candidates.
+  std::vector<mesh::Points> candidates{full.rest_positions()};
+  out.candidates.emplace_back("initial tangent (rest)");
+  for (size_t m = 0; m < level_states.size(); ++m) {
+    candidates.push_back(level_states[m]);
+    char text[96];
+    std::snprintf(text, sizeof text, "tangent at %.3g N on node %d", plan.forces[m],
+                  plan.points.front());
+    out.candidates.emplace_back(text);
+  }
+  report("stiffness", 0, candidates.size());
+  out.chosen = models::reduced::ChooseStiffness(full, candidates, pod.modes, out.cases,
+                                                &out.candidate_errors);
+  report("stiffness", candidates.size(), candidates.size());
+  models::reduced::KlModelData data =
+      models::reduced::KlDataFromFem(full, candidates[out.chosen], pod.modes);
+  data.creep = std::move(out.data.creep);
+  data.creep_radius = plan.creep_radius;
+  out.data = std::move(data);
+  out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+  return out;
+}
+
+}  // namespace somasim::reduce

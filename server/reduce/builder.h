@@ -1,0 +1,70 @@
+// somasim-reduce's engine (issue 12, SPEC §4.5; seed 000 §3–4): sample the full FEM model under
+// point loads, take the Karhunen–Loève modes of the displacement snapshots, choose the reduced
+// stiffness among candidate tangents, and record creep curves. Offline: allocates, takes
+// minutes on liver4055 (reported), never on a real-time path.
+//
+// For each sample point p (a surface node of an interaction region), direction d (the inward
+// surface normal, and with directions = 3 the two tangents) and magnitude F, the full model's
+// elastic static equilibrium under F d at p is a snapshot and a static case. With QLV (the
+// model's Prony series), each point's creep run — 1 N along its inward normal held for
+// creep_duration, quasi-static steps of creep_interval — gives its creep curve
+// c(t) = |u_p(t)| / |u_p^elastic| (c(0) = 1) and its final state as one more snapshot.
+// Candidates for K: the tangent at rest (seed 000's "initial" K) and at the equilibrium of the
+// first point's normal load at each magnitude; the one with the least relative L2 error over the
+// static cases is kept (seed 000: 22 % with the initial K, 17 % with the selected one).
+#pragma once
+
+#include <Eigen/Core>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "common/mesh/mesh_types.h"
+#include "server/models/fem/fem_model.h"
+#include "server/models/reduced/kl_model.h"
+#include "server/models/reduced/pod.h"
+#include "server/models/reduced/reduce_fem.h"
+
+namespace somasim::reduce {
+
+struct SamplingPlan {
+  std::vector<int32_t> points;                // loaded nodes, on the boundary, not held
+  std::vector<double> forces{0.1, 0.5, 1.0};  // magnitudes [N], each > 0
+  int directions = 3;                         // 1 or 3 (see above)
+  std::vector<int32_t> fixed;                 // the supports (held nodes), not empty
+  double creep_duration = 20.0;               // [s], >= 0 (0: no creep curves)
+  double creep_interval = 0.1;                // [s], > 0
+  models::reduced::PodSettings pod;           // the energy criterion
+  double creep_radius = 0.01;                 // [m] for the model (kl_model.h)
+  int load_steps = 1;                         // Newton's first load increments, > 0
+};
+
+struct BuildProgress {
+  std::string stage;  // "snapshots", "creep", "modes", "stiffness"
+  size_t done = 0, total = 0;
+};
+
+struct BuildReport {
+  models::reduced::KlModelData data;
+  Eigen::VectorXd eigenvalues;  // of QᵀQ, descending [m²]
+  double kept_fraction = 0.0;
+  std::vector<std::string> candidates;   // K's candidates, described
+  std::vector<double> candidate_errors;  // their relative L2 errors on the static cases
+  size_t chosen = 0;                     // index into candidates
+  size_t snapshots = 0;
+  int unconverged = 0;                             // full solves that did not converge (left out)
+  double seconds = 0.0;                            // wall time of the build
+  std::vector<models::reduced::StaticCase> cases;  // the static cases (for evaluation)
+};
+
+// Throws std::invalid_argument naming what is wrong with the plan (a point out of range, held or
+// not on the boundary, no support, bad magnitudes, directions, durations).
+BuildReport BuildKlModel(const models::fem::FemModel& full, const mesh::TetMesh& mesh,
+                         const SamplingPlan& plan,
+                         const std::function<void(const BuildProgress&)>& progress = {});
+
+// The boundary nodes' outward unit normals (area-weighted over their boundary triangles), zero
+// for interior nodes: 3 × num_nodes.
+mesh::Points BoundaryNormals(const mesh::TetMesh& mesh);
+
+}  // namespace somasim::reduce

@@ -1,0 +1,237 @@
+// somasim-reduce: makes a reduced model of a scene's organ from its full FEM model (issue 12;
+// docs/reduced.md).
+//   somasim-reduce SCENE --out FILE.somared [--organ ID]
+// SCENE is a *.scene.txtpb with a `reduction` block (the sampling plan) for the organ. Prints
+// progress on stderr and one JSON object on stdout: the modes, eigenvalues, candidates for K
+// with their errors, creep curves, the build's wall time.
+// Exit codes: 0 written, 1 the build failed (no full solve converged), 2 bad command line,
+// 3 bad scene or mesh, 4 a file could not be read or written (FILE exists: never overwritten),
+// 70 a bug.
+#include <CLI/CLI.hpp>
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <exception>
+#include <filesystem>
+#include <iostream>
+#include <nlohmann/json.hpp>
+#include <set>
+
+#include "common/mesh/topology.h"
+#include "common/mesh_io/mesh_error.h"
+#include "common/scene/scene.h"
+#include "server/reduce/builder.h"
+#include "server/reduce/reduced_file.h"
+#include "server/solve/organ_builder.h"
+
+#ifndef SOMASIM_VERSION
+#define SOMASIM_VERSION "unknown"
+#endif
+
+namespace {
+
+constexpr int kExitOk = 0;
+constexpr int kExitFailed = 1;
+constexpr int kExitUsage = 2;
+constexpr int kExitBadInput = 3;
+constexpr int kExitIo = 4;
+constexpr int kExitInternal = 70;
+
+namespace scene = somasim::scene;
+namespace reduce = somasim::reduce;
+
+// Up to `count` nodes of `candidates` spread out: the one nearest their centroid first, then
+// each time the one farthest from those chosen (all of them when count is 0 or larger).
+std::vector<int32_t> Spread(const std::vector<int32_t>& candidates, const somasim::mesh::Points& x,
+                            size_t count) {
+  if (count == 0 || count >= candidates.size()) return candidates;
+  Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
+  for (const int32_t c : candidates) centroid += x.col(c);
+  centroid /= static_cast<double>(candidates.size());
+  std::vector<double> distance(candidates.size());
+  for (size_t k = 0; k < candidates.size(); ++k) {
+    distance[k] = -(x.col(candidates[k]) - centroid).norm();  // nearest first
+  }
+  std::vector<int32_t> chosen;
+  while (chosen.size() < count) {
+    const size_t best =
+        static_cast<size_t>(std::max_element(distance.begin(), distance.end()) - distance.begin());
+    const int32_t node = candidates[best];
+    chosen.push_back(node);
+    for (size_t k = 0; k < candidates.size(); ++k) {
+      const double d = (x.col(candidates[k]) - x.col(node)).norm();
+      distance[k] = chosen.size() == 1 ? d : std::min(distance[k], d);
+    }
+    distance[best] = -1.0;
+  }
+  return chosen;
+}
+
+int RunMain(int argc, char** argv) {
+  CLI::App app{
+      "somasim-reduce: make a reduced model (seed 000's Karhunen-Loeve model) of a scene's organ "
+      "from its full FEM model, by the scene's sampling plan (its reduction block)"};
+  std::string scene_arg, out_file, organ_id;
+  app.add_option("scene", scene_arg, "Scene file (*.scene.txtpb) with a reduction block")
+      ->required();
+  app.add_option("--out", out_file, "The reduced model to write (*.somared; must not exist)")
+      ->required();
+  app.add_option("--organ", organ_id, "The organ to reduce (default: the first reduction's)");
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::CallForHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::ParseError& e) {
+    app.exit(e);
+    return kExitUsage;
+  }
+  std::string command;
+  for (int k = 0; k < argc; ++k) command += (k > 0 ? " " : "") + std::string(argv[k]);
+  try {
+    scene::SceneLines lines;
+    const scene::Scene s = scene::LoadSceneFile(scene_arg, &lines);
+    std::string scene_dir = std::filesystem::path(scene_arg).parent_path().string();
+    if (scene_dir.empty()) scene_dir = ".";
+    int plan_index = -1;
+    for (int k = 0; k < s.reduction_size(); ++k) {
+      if (organ_id.empty() || s.reduction(k).organ() == organ_id) {
+        plan_index = k;
+        break;
+      }
+    }
+    if (plan_index < 0) {
+      std::cerr << "somasim-reduce: " << scene_arg << " has no reduction block"
+                << (organ_id.empty() ? "" : " for organ \"" + organ_id + "\"") << "\n";
+      return kExitBadInput;
+    }
+    if (std::filesystem::exists(out_file)) {
+      std::cerr << "somasim-reduce: " << out_file
+                << " exists (a reduced model is never overwritten)\n";
+      return kExitIo;
+    }
+    const scene::Reduction& r = s.reduction(plan_index);
+    int organ_index = 0;
+    while (s.organ(organ_index).id() != r.organ()) ++organ_index;
+    const somasim::solve::BuiltOrgan organ =
+        somasim::solve::BuildOrgan(s, organ_index, lines, scene_dir);
+    const std::string why = somasim::solve::UnheldParts(organ, organ.fixed_nodes);
+    if (!why.empty()) {
+      std::cerr << "somasim-reduce: " << organ.field << ": " << why << "\n";
+      return kExitBadInput;
+    }
+    // The plan: boundary nodes of each interaction region, not held, spread.
+    reduce::SamplingPlan plan;
+    plan.fixed = organ.fixed_nodes;
+    const somasim::mesh::Points normals = reduce::BoundaryNormals(organ.volume);
+    const std::set<int32_t> held(plan.fixed.begin(), plan.fixed.end());
+    const std::string field = "reduction[" + std::to_string(plan_index) + "]";
+    for (int i = 0; i < r.interaction_size(); ++i) {
+      const std::string where = field + ".interaction[" + std::to_string(i) + "]";
+      std::vector<int32_t> candidates;
+      for (const int32_t n :
+           somasim::solve::SelectRegion(r.interaction(i), organ.rest(), where, lines)) {
+        if (held.count(n) == 0 && normals.col(n).squaredNorm() > 0.5) candidates.push_back(n);
+      }
+      if (candidates.empty()) {
+        throw lines.Error(where, "holds no free boundary node to load");
+      }
+      const std::vector<int32_t> chosen =
+          Spread(candidates, organ.rest(),
+                 static_cast<size_t>(r.points_per_region() > 0 ? r.points_per_region() : 6));
+      plan.points.insert(plan.points.end(), chosen.begin(), chosen.end());
+    }
+    if (r.force_size() > 0) plan.forces.assign(r.force().begin(), r.force().end());
+    if (r.directions() != 0) plan.directions = r.directions();
+    if (r.creep_duration() > 0.0) plan.creep_duration = r.creep_duration();
+    if (r.creep_interval() > 0.0) plan.creep_interval = r.creep_interval();
+    if (r.energy_fraction() > 0.0) plan.pod.energy_fraction = r.energy_fraction();
+    if (r.max_modes() > 0) plan.pod.max_modes = r.max_modes();
+    if (r.creep_radius() > 0.0) plan.creep_radius = r.creep_radius();
+    std::fprintf(stderr, "somasim-reduce: %s: %zu points, %zu magnitudes, %d directions\n",
+                 organ.id.c_str(), plan.points.size(), plan.forces.size(), plan.directions);
+    auto last_print = std::chrono::steady_clock::now() - std::chrono::seconds(10);
+    const reduce::BuildReport report =
+        reduce::BuildKlModel(*organ.fem, organ.volume, plan, [&](const reduce::BuildProgress& p) {
+          const auto now = std::chrono::steady_clock::now();
+          if (p.done == p.total || now - last_print > std::chrono::seconds(2)) {
+            std::fprintf(stderr, "somasim-reduce: %s %zu/%zu\n", p.stage.c_str(), p.done, p.total);
+            last_print = now;
+          }
+        });
+    // The file.
+    somasim::reduced::ReducedModelMetadata m;
+    m.set_kind("kl_seed000");
+    m.set_software_version(SOMASIM_VERSION);
+    m.set_command(command);
+    m.set_organ(organ.id);
+    m.set_mesh(organ.mesh_name);
+    m.set_mesh_hash(reduce::MeshHash(organ.volume));
+    m.set_num_nodes(static_cast<uint64_t>(organ.volume.vertices.cols()));
+    m.set_num_tets(static_cast<uint64_t>(organ.volume.tetrahedra.cols()));
+    m.set_material(s.organ(organ_index).model().ShortDebugString() + " " +
+                   s.organ(organ_index).material().ShortDebugString());
+    for (const double e : report.eigenvalues) m.add_eigenvalues(e);
+    m.set_kept_fraction(report.kept_fraction);
+    std::string stiffness = "K = " + report.candidates[report.chosen] + "; relative L2 errors:";
+    for (size_t k = 0; k < report.candidates.size(); ++k) {
+      char text[160];
+      std::snprintf(text, sizeof text, " %s %.4f;", report.candidates[k].c_str(),
+                    report.candidate_errors[k]);
+      stiffness += text;
+    }
+    m.set_stiffness(stiffness);
+    m.set_created_unix_ns(std::chrono::duration_cast<std::chrono::nanoseconds>(
+                              std::chrono::system_clock::now().time_since_epoch())
+                              .count());
+    m.set_build_seconds(report.seconds);
+    reduce::WriteReducedModel(out_file, m, report.data);
+    // The summary.
+    nlohmann::json j;
+    j["file"] = out_file;
+    j["organ"] = organ.id;
+    j["mesh"] = organ.mesh_name;
+    j["nodes"] = organ.volume.vertices.cols();
+    j["points"] = plan.points;
+    j["snapshots"] = report.snapshots;
+    j["unconverged"] = report.unconverged;
+    j["modes"] = report.data.modes.cols();
+    j["kept_fraction"] = report.kept_fraction;
+    std::vector<double> leading;
+    for (Eigen::Index k = 0; k < std::min<Eigen::Index>(report.eigenvalues.size(), 12); ++k) {
+      leading.push_back(report.eigenvalues(k));
+    }
+    j["eigenvalues"] = leading;
+    for (size_t k = 0; k < report.candidates.size(); ++k) {
+      j["stiffness_candidates"].push_back(
+          {{"candidate", report.candidates[k]}, {"l2_error", report.candidate_errors[k]}});
+    }
+    j["stiffness"] = report.candidates[report.chosen];
+    j["creep_curves"] = report.data.creep.size();
+    j["build_seconds"] = report.seconds;
+    std::cout << j.dump(2) << "\n";
+    return kExitOk;
+  } catch (const scene::SceneError& e) {
+    std::cerr << "somasim-reduce: " << e.what() << "\n";
+    return e.line() == 0 && e.field().empty() ? kExitIo : kExitBadInput;
+  } catch (const somasim::mesh_io::MeshError& e) {
+    std::cerr << "somasim-reduce: " << e.what() << "\n";
+    return e.kind() == somasim::mesh_io::MeshErrorKind::kIo ? kExitIo : kExitBadInput;
+  } catch (const reduce::ReducedFileError& e) {
+    std::cerr << "somasim-reduce: " << e.what() << "\n";
+    return kExitIo;
+  } catch (const std::invalid_argument& e) {
+    std::cerr << "somasim-reduce: " << e.what() << "\n";
+    return kExitFailed;
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return RunMain(argc, argv);
+  } catch (const std::exception& e) {
+    std::cerr << "somasim-reduce: internal error: " << e.what() << "\n";
+    return kExitInternal;
+  }
+}

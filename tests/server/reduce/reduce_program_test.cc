@@ -1,0 +1,139 @@
+// somasim-reduce as a program (server/reduce/somasim_reduce_main.cc) on the kidney's test
+// reduction (tests/data/scenes/kidney_reduction.scene.txtpb): it writes a reduced model that
+// loads against the organ's mesh, summarises it in JSON, and refuses what it cannot do with
+// the documented exit codes and a message naming the cause.
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "common/mesh_gen/builtin_organs.h"
+#include "server/reduce/reduced_file.h"
+#include "tests/support/mesh_fixtures.h"
+#include "tests/support/run_program.h"
+
+namespace somasim::reduce {
+namespace {
+
+std::string Scene(const std::string& name) {
+  return "'" + std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/" + name + "'";
+}
+
+// The JSON summary in the output (stdout, with the progress lines of stderr around it).
+nlohmann::json Summary(const std::string& out) {
+  const std::string text = "\n" + out;
+  const size_t begin = text.find("\n{");
+  const size_t end = text.rfind("\n}");
+  if (begin == std::string::npos || end == std::string::npos || end < begin) return {};
+  return nlohmann::json::parse(text.substr(begin + 1, end + 2 - begin - 1));
+}
+
+TEST(ReduceProgram, WritesAReducedModelThatLoadsOnTheOrgansMesh) {
+  const std::string dir = testing::MakeTempDir("reduce");
+  const std::string out = dir + "/kidney.somared";
+  const testing::ToolRun r = testing::RunProgram(
+      "somasim-reduce", Scene("kidney_reduction.scene.txtpb") + " --out " + out);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const nlohmann::json j = Summary(r.out);
+  EXPECT_EQ(j["organ"], "kidney");
+  EXPECT_EQ(j["points"].size(), 4u);
+  EXPECT_EQ(j["snapshots"], 4 * 3 * 2 + 4);  // static cases + each creep run's end
+  EXPECT_EQ(j["unconverged"], 0);
+  EXPECT_EQ(j["modes"], 8);
+  EXPECT_EQ(j["creep_curves"], 4);
+  EXPECT_EQ(j["stiffness_candidates"].size(), 3u);
+  EXPECT_NE(r.out.find("snapshots 24/24"), std::string::npos) << r.out;
+  const mesh_gen::BuiltinOrgan kidney = mesh_gen::GenerateBuiltinOrgan("kidney424");
+  const LoadedReducedModel loaded = LoadReducedModel(out, &kidney.volume);
+  EXPECT_EQ(loaded.model->num_modes(), 8);
+  EXPECT_EQ(loaded.metadata.mesh(), "builtin:kidney424");
+  EXPECT_NE(loaded.metadata.command().find("somasim-reduce"), std::string::npos);
+  EXPECT_NE(loaded.metadata.stiffness().find("relative L2 errors"), std::string::npos);
+  ASSERT_EQ(loaded.model->data().creep.size(), 4u);
+  // The linear solid's creep: towards 1/γ∞ = 1/0.6.
+  const std::vector<double>& c = loaded.model->data().creep[0].multiplier;
+  EXPECT_EQ(c.front(), 1.0);
+  EXPECT_GT(c.back(), 1.5);
+  EXPECT_LT(c.back(), 1.0 / 0.6 + 1e-3);
+  // A scene runs the organ on it (somasim-solve's dynamic analysis: the model's own steps).
+  std::ofstream(dir + "/reduced.scene.txtpb")
+      << "format_version: 1\n"
+         "organ { id: \"kidney\" builtin: \"kidney424\" model { reduced_kl { file: "
+         "\"kidney.somared\" } dt: 0.01 } }\n"
+         "load { organ: \"kidney\" region { nodes { id: "
+      << j["points"][0].get<int>()
+      << " } } force { z: -0.3 } }\n"
+         "analysis { dynamic { end_time: 0.5 } }\n";
+  const testing::ToolRun solved = testing::RunProgram(
+      "somasim-solve", "'" + dir + "/reduced.scene.txtpb' --out '" + dir + "/solved'");
+  ASSERT_EQ(solved.status, 0) << solved.out;
+  const nlohmann::json s = Summary(solved.out);
+  EXPECT_EQ(s["organs"][0]["model"], "reduced_kl");
+  EXPECT_EQ(s["organs"][0]["rejected_steps"], 0);
+  EXPECT_GT(s["max_displacement_m"].get<double>(), 1e-4);
+  EXPECT_LT(s["max_displacement_m"].get<double>(), 0.05);
+  // On another organ's mesh it is refused, naming the field.
+  std::ofstream(dir + "/wrong.scene.txtpb")
+      << "format_version: 1\n"
+         "organ { id: \"beam\" builtin: \"beam19k\"\n"
+         "  model { reduced_kl { file: \"kidney.somared\" } } }\n"
+         "analysis { dynamic { end_time: 0.1 } }\n";
+  const testing::ToolRun wrong = testing::RunProgram(
+      "somasim-solve", "'" + dir + "/wrong.scene.txtpb' --out '" + dir + "/wrong'");
+  EXPECT_EQ(wrong.status, 3) << wrong.out;
+  EXPECT_NE(wrong.out.find("wrong.scene.txtpb:3: organ[0].model.reduced_kl.file"),
+            std::string::npos)
+      << wrong.out;
+  EXPECT_NE(wrong.out.find("made for a mesh of 430 nodes"), std::string::npos) << wrong.out;
+  // Never overwritten.
+  const testing::ToolRun again = testing::RunProgram(
+      "somasim-reduce", Scene("kidney_reduction.scene.txtpb") + " --out " + out);
+  EXPECT_EQ(again.status, 4);
+  EXPECT_NE(again.out.find("never overwritten"), std::string::npos) << again.out;
+  std::filesystem::remove_all(dir);
+}
+
+TEST(ReduceProgram, RefusesScenesWithoutAUsablePlanByName) {
+  const std::string dir = testing::MakeTempDir("reduce-bad");
+  const testing::ToolRun none = testing::RunProgram(
+      "somasim-reduce", Scene("liver_creep.scene.txtpb") + " --out " + dir + "/x.somared");
+  EXPECT_EQ(none.status, 3);
+  EXPECT_NE(none.out.find("has no reduction block"), std::string::npos) << none.out;
+  const std::string bad = dir + "/bad.scene.txtpb";
+  std::ofstream(bad) << "format_version: 1\n"
+                        "organ { id: \"k\" builtin: \"kidney424\" model { mass_spring {} }\n"
+                        "  material { density: 1000 youngs_modulus: 5000 } }\n"
+                        "reduction {\n"
+                        "  organ: \"k\"\n"
+                        "  interaction { sphere { center { x: 0 y: 0 z: 0 } radius: 0.01 } }\n"
+                        "}\n";
+  const testing::ToolRun not_fem =
+      testing::RunProgram("somasim-reduce", bad + " --out " + dir + "/x.somared");
+  EXPECT_EQ(not_fem.status, 3);
+  EXPECT_NE(not_fem.out.find("bad.scene.txtpb:5: reduction[0].organ"), std::string::npos)
+      << not_fem.out;
+  EXPECT_NE(not_fem.out.find("needs a FEM model"), std::string::npos) << not_fem.out;
+  std::ofstream(bad)
+      << "format_version: 1\n"
+         "organ { id: \"k\" builtin: \"kidney424\" model { fem_linear {} }\n"
+         "  material { density: 1000 youngs_modulus: 5000 poisson_ratio: 0.4 }\n"
+         "  fixed { box { min { x: -1 y: -1 z: -1 } max { x: 1 y: 1 z: -0.01 } } } }\n"
+         "reduction {\n"
+         "  organ: \"k\"\n"
+         "  interaction { sphere { center { x: 0 y: 0 z: 0 } radius: 0.001 } }\n"
+         "  directions: 2\n"
+         "}\n";
+  const testing::ToolRun directions =
+      testing::RunProgram("somasim-reduce", bad + " --out " + dir + "/x.somared");
+  EXPECT_EQ(directions.status, 3);
+  EXPECT_NE(directions.out.find(":8: reduction[0].directions"), std::string::npos)
+      << directions.out;
+  EXPECT_EQ(testing::RunProgram("somasim-reduce", bad).status, 2);
+  EXPECT_FALSE(std::filesystem::exists(dir + "/x.somared"));
+  std::filesystem::remove_all(dir);
+}
+
+}  // namespace
+}  // namespace somasim::reduce
