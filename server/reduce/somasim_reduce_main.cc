@@ -1,26 +1,33 @@
 // somasim-reduce: makes a reduced model of a scene's organ from its full FEM model (issue 12;
 // docs/reduced.md).
 //   somasim-reduce SCENE --out FILE.somared [--organ ID]
+//   somasim-reduce SCENE --evaluate FILE.somared --plan PLAN.txtpb [--organ ID]
 // SCENE is a *.scene.txtpb with a `reduction` block (the sampling plan) for the organ. Prints
 // progress on stderr and one JSON object on stdout: the modes, eigenvalues, candidates for K
-// with their errors, creep curves, the build's wall time.
+// with their errors, creep curves, the build's wall time. --evaluate prints the evaluation
+// table (markdown) of the plan's cases instead.
 // Exit codes: 0 written, 1 the build failed (no full solve converged), 2 bad command line,
 // 3 bad scene or mesh, 4 a file could not be read or written (FILE exists: never overwritten),
 // 70 a bug.
+#include <google/protobuf/text_format.h>
+
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <exception>
 #include <filesystem>
+#include <fstream>
 #include <iostream>
 #include <nlohmann/json.hpp>
 #include <set>
+#include <sstream>
 
 #include "common/mesh/topology.h"
 #include "common/mesh_io/mesh_error.h"
 #include "common/scene/scene.h"
 #include "server/reduce/builder.h"
+#include "server/reduce/evaluate.h"
 #include "server/reduce/reduced_file.h"
 #include "server/solve/organ_builder.h"
 
@@ -67,22 +74,97 @@ std::vector<int32_t> Spread(const std::vector<int32_t>& candidates, const somasi
   return chosen;
 }
 
+// --evaluate: the reduced model against the scene's full model on the plan's cases.
+int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
+                  const std::string& scene_dir, const std::string& organ_id,
+                  const std::string& model_file, const std::string& plan_file) {
+  int organ_index = -1;
+  for (int k = 0; k < s.organ_size(); ++k) {
+    if (s.organ(k).id() == organ_id || (organ_id.empty() && organ_index < 0)) organ_index = k;
+  }
+  if (organ_index < 0) {
+    std::cerr << "somasim-reduce: no organ \"" << organ_id << "\" in the scene\n";
+    return kExitBadInput;
+  }
+  const somasim::solve::BuiltOrgan organ =
+      somasim::solve::BuildOrgan(s, organ_index, lines, scene_dir);
+  if (organ.fem == nullptr) {
+    std::cerr << "somasim-reduce: " << organ.field << " (" << organ.id
+              << ") is not a FEM model: nothing to compare with\n";
+    return kExitBadInput;
+  }
+  const reduce::LoadedReducedModel loaded = reduce::LoadReducedModel(model_file, &organ.volume);
+  std::ifstream in(plan_file);
+  if (!in) {
+    std::cerr << "somasim-reduce: cannot read " << plan_file << "\n";
+    return kExitIo;
+  }
+  std::ostringstream text;
+  text << in.rdbuf();
+  somasim::reduced::EvaluationPlan plan;
+  if (!google::protobuf::TextFormat::ParseFromString(text.str(), &plan)) {
+    std::cerr << "somasim-reduce: " << plan_file << " is not an evaluation plan (text format)\n";
+    return kExitBadInput;
+  }
+  try {
+    reduce::CheckPlan(plan, organ.fem->num_nodes(), organ.fixed_nodes);
+  } catch (const std::invalid_argument& e) {
+    std::cerr << "somasim-reduce: " << plan_file << ": " << e.what() << "\n";
+    return kExitBadInput;
+  }
+  const auto started = std::chrono::steady_clock::now();
+  const std::vector<reduce::CaseResult> results =
+      reduce::Evaluate(*organ.fem, organ.fixed_nodes, *loaded.model, plan);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+  std::printf("Reduced model %s (%d modes; %s) against the full model of %s, plan %s\n\n",
+              model_file.c_str(), loaded.model->num_modes(), loaded.metadata.stiffness().c_str(),
+              organ.id.c_str(), plan_file.c_str());
+  std::printf(
+      "| case | group | steps | field L2 error | loaded-node error | |u| full [mm] | "
+      "|u| reduced [mm] |\n|---|---|---|---|---|---|---|\n");
+  bool all_converged = true;
+  for (const reduce::CaseResult& r : results) {
+    std::printf("| %s | %s | %d | %.1f %% | %.1f %% | %.3f | %.3f |%s\n", r.name.c_str(),
+                r.group.c_str(), r.steps, 100.0 * r.field_error, 100.0 * r.node_error,
+                1e3 * r.full_end_m, 1e3 * r.reduced_end_m,
+                r.converged ? "" : " (a full step did not converge)");
+    all_converged = all_converged && r.converged;
+  }
+  std::printf("\nwall time %.1f s\n", seconds);
+  return all_converged ? kExitOk : kExitFailed;
+}
+
 int RunMain(int argc, char** argv) {
   CLI::App app{
       "somasim-reduce: make a reduced model (seed 000's Karhunen-Loeve model) of a scene's organ "
       "from its full FEM model, by the scene's sampling plan (its reduction block)"};
-  std::string scene_arg, out_file, organ_id;
+  std::string scene_arg, out_file, organ_id, evaluate_file, plan_file;
   app.add_option("scene", scene_arg, "Scene file (*.scene.txtpb) with a reduction block")
       ->required();
-  app.add_option("--out", out_file, "The reduced model to write (*.somared; must not exist)")
-      ->required();
+  auto* out_option =
+      app.add_option("--out", out_file, "The reduced model to write (*.somared; must not exist)");
   app.add_option("--organ", organ_id, "The organ to reduce (default: the first reduction's)");
+  auto* evaluate_option = app.add_option(
+      "--evaluate", evaluate_file,
+      "Instead of building: compare this reduced model with the scene's full model on --plan");
+  app.add_option("--plan", plan_file, "The evaluation plan (*.txtpb, EvaluationPlan)")
+      ->needs(evaluate_option);
+  evaluate_option->excludes(out_option);
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
     return app.exit(e);
   } catch (const CLI::ParseError& e) {
     app.exit(e);
+    return kExitUsage;
+  }
+  if (evaluate_file.empty() && out_file.empty()) {
+    std::cerr << "somasim-reduce: give --out FILE (build) or --evaluate FILE --plan PLAN\n";
+    return kExitUsage;
+  }
+  if (!evaluate_file.empty() && plan_file.empty()) {
+    std::cerr << "somasim-reduce: --evaluate needs --plan\n";
     return kExitUsage;
   }
   std::string command;
@@ -98,6 +180,12 @@ int RunMain(int argc, char** argv) {
         plan_index = k;
         break;
       }
+    }
+    if (!evaluate_file.empty()) {
+      return RunEvaluation(
+          s, lines, scene_dir,
+          organ_id.empty() && plan_index >= 0 ? s.reduction(plan_index).organ() : organ_id,
+          evaluate_file, plan_file);
     }
     if (plan_index < 0) {
       std::cerr << "somasim-reduce: " << scene_arg << " has no reduction block"

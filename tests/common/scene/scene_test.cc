@@ -236,6 +236,54 @@ TEST(Scene, ReducedPolynomialNeedsItsCoefficients) {
                 "organ[0].material.reduced_polynomial.d[1]", ">= 0");
 }
 
+// somasim-reduce's sampling plans (reduction blocks) and reduced organs (reduced_kl): the
+// repository's reduction scenes load; bad plans are refused by line and field.
+TEST(Scene, ReductionPlansAndReducedOrgansAreChecked) {
+  for (const char* name : {"liver_reduction", "kidney_reduction"}) {
+    const Scene scene =
+        LoadSceneFile(std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/" + name + ".scene.txtpb");
+    ASSERT_EQ(scene.reduction_size(), 1) << name;
+    EXPECT_GE(scene.reduction(0).interaction_size(), 2) << name;
+  }
+  const std::string plan = std::string(kGood) +
+                           "reduction {\n"                        // line 27
+                           "  organ: \"kidney\"\n"                // 28
+                           "  interaction { nodes { id: 5 } }\n"  // 29
+                           "  force: 0.1\n"                       // 30
+                           "  directions: 3\n"                    // 31
+                           "  energy_fraction: 0.99\n"            // 32
+                           "}\n";
+  EXPECT_EQ(ParseScene(plan, "s").reduction(0).force(0), 0.1);
+  const auto edit = [&](const std::string& from, const std::string& to) {
+    std::string text = plan;
+    const size_t at = text.rfind(from);
+    EXPECT_NE(at, std::string::npos) << from;
+    return text.replace(at, from.size(), to);
+  };
+  ExpectRefused(edit("organ: \"kidney\"", "organ: \"liver\""), 28, "reduction[0].organ",
+                "not an organ of the scene");
+  ExpectRefused(edit("organ: \"kidney\"", "organ: \"patch\""), 28, "reduction[0].organ",
+                "needs a FEM model");
+  ExpectRefused(edit("force: 0.1", "force: -0.1"), 30, "reduction[0].force[0]", "> 0");
+  ExpectRefused(edit("directions: 3", "directions: 2"), 31, "reduction[0].directions",
+                "1 (the inward normal) or 3");
+  ExpectRefused(edit("energy_fraction: 0.99", "energy_fraction: 1.5"), 32,
+                "reduction[0].energy_fraction", "[0, 1]");
+  ExpectRefused(edit("  interaction { nodes { id: 5 } }\n", ""), 27, "reduction[0]",
+                "needs an interaction region");
+  ExpectRefused(plan + "reduction { organ: \"kidney\" interaction { nodes { id: 1 } } }\n", 34,
+                "reduction[1].organ", "has another reduction");
+  // A reduced organ needs its file; its material is the file's (none is asked for).
+  const Scene reduced =
+      ParseScene(Edit("model { fem_corotational {} dt: 0.01 }\n  material { density: 1050 "
+                      "youngs_modulus: 5000 poisson_ratio: 0.45 rayleigh_mass: 0.1 }",
+                      "model { reduced_kl { file: \"kidney.somared\" } }"),
+                 "s");
+  EXPECT_EQ(reduced.organ(0).model().reduced_kl().file(), "kidney.somared");
+  ExpectRefused(Edit("model { fem_corotational {} dt: 0.01 }", "model { reduced_kl {} }"), 6,
+                "organ[0].model.reduced_kl.file", "is empty");
+}
+
 TEST(SceneLines, NameTheLineOfAFieldOrOfItsNearestParent) {
   SceneLines lines;
   ParseScene(kGood, "good.scene.txtpb", &lines);

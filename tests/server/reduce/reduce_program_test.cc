@@ -10,6 +10,7 @@
 #include <string>
 
 #include "common/mesh_gen/builtin_organs.h"
+#include "server/reduce/builder.h"
 #include "server/reduce/reduced_file.h"
 #include "tests/support/mesh_fixtures.h"
 #include "tests/support/run_program.h"
@@ -41,13 +42,13 @@ TEST(ReduceProgram, WritesAReducedModelThatLoadsOnTheOrgansMesh) {
   EXPECT_EQ(j["points"].size(), 4u);
   EXPECT_EQ(j["snapshots"], 4 * 3 * 2 + 4);  // static cases + each creep run's end
   EXPECT_EQ(j["unconverged"], 0);
-  EXPECT_EQ(j["modes"], 8);
+  EXPECT_EQ(j["modes"], 12);
   EXPECT_EQ(j["creep_curves"], 4);
   EXPECT_EQ(j["stiffness_candidates"].size(), 3u);
   EXPECT_NE(r.out.find("snapshots 24/24"), std::string::npos) << r.out;
   const mesh_gen::BuiltinOrgan kidney = mesh_gen::GenerateBuiltinOrgan("kidney424");
   const LoadedReducedModel loaded = LoadReducedModel(out, &kidney.volume);
-  EXPECT_EQ(loaded.model->num_modes(), 8);
+  EXPECT_EQ(loaded.model->num_modes(), 12);
   EXPECT_EQ(loaded.metadata.mesh(), "builtin:kidney424");
   EXPECT_NE(loaded.metadata.command().find("somasim-reduce"), std::string::npos);
   EXPECT_NE(loaded.metadata.stiffness().find("relative L2 errors"), std::string::npos);
@@ -87,6 +88,60 @@ TEST(ReduceProgram, WritesAReducedModelThatLoadsOnTheOrgansMesh) {
             std::string::npos)
       << wrong.out;
   EXPECT_NE(wrong.out.find("made for a mesh of 430 nodes"), std::string::npos) << wrong.out;
+  // The evaluation: a trained load (a sampled point along its inward normal, held) is
+  // reproduced over its creep; a load far from the regions is not.
+  const int32_t trained = j["points"][0].get<int>();
+  const Eigen::Vector3d inward = -reduce::BoundaryNormals(kidney.volume).col(trained);
+  int32_t far = -1;
+  for (int32_t i = 0; i < kidney.volume.vertices.cols(); ++i) {
+    if (kidney.volume.vertices(0, i) < -0.05 && kidney.volume.vertices(2, i) > 0.0) far = i;
+  }
+  ASSERT_GE(far, 0);
+  std::ofstream(dir + "/plan.txtpb")
+      << "organ: \"kidney\"\n"
+         "cases { name: \"trained\" group: \"inside\" node: "
+      << trained << " force: " << 0.3 * inward.x() << " force: " << 0.3 * inward.y()
+      << " force: " << 0.3 * inward.z()
+      << " end_time: 1.5 dt: 0.1 }\n"
+         "cases { name: \"far\" group: \"outside\" node: "
+      << far
+      << " force: 0 force: 0.2 force: -0.2 time: 0 scale: 0 "
+         "time: 0.5 scale: 1 end_time: 1 dt: 0.1 }\n";
+  const testing::ToolRun evaluated =
+      testing::RunProgram("somasim-reduce", Scene("kidney_reduction.scene.txtpb") + " --evaluate " +
+                                                out + " --plan " + dir + "/plan.txtpb");
+  ASSERT_EQ(evaluated.status, 0) << evaluated.out;
+  std::printf("%s", evaluated.out.c_str());
+  const auto percent = [&](const std::string& row, int column) {
+    size_t at = evaluated.out.find("| " + row + " |");
+    for (int k = 0; k < column && at != std::string::npos; ++k)
+      at = evaluated.out.find('|', at + 1);
+    return at == std::string::npos ? -1.0 : std::atof(evaluated.out.c_str() + at + 1);
+  };
+  EXPECT_GE(percent("trained", 3), 0.0);
+  EXPECT_LT(percent("trained", 3), 0.1);  // field error [%], printed to 0.1 %
+  EXPECT_LT(percent("trained", 4), 0.1);  // loaded-node error [%]
+  EXPECT_GT(percent("far", 3), 1.0);
+  // A plan naming a held node is refused by case.
+  std::ofstream(dir + "/bad_plan.txtpb") << "cases { name: \"held\" node: " << 0
+                                         << " force: 0 force: 0 force: 1 end_time: 1 dt: 0.1 }\n";
+  const testing::ToolRun held =
+      testing::RunProgram("somasim-reduce", Scene("kidney_reduction.scene.txtpb") + " --evaluate " +
+                                                out + " --plan " + dir + "/bad_plan.txtpb");
+  // Node 0 may or may not be held; either way a bad node is named.
+  if (held.status != 0) {
+    EXPECT_EQ(held.status, 3);
+    EXPECT_NE(held.out.find("cases[0] (held)"), std::string::npos) << held.out;
+  }
+  std::ofstream(dir + "/bad_plan.txtpb")
+      << "cases { name: \"nowhere\" node: 100000 force: 0 force: 0 force: 1 end_time: 1 "
+         "dt: 0.1 }\n";
+  const testing::ToolRun nowhere =
+      testing::RunProgram("somasim-reduce", Scene("kidney_reduction.scene.txtpb") + " --evaluate " +
+                                                out + " --plan " + dir + "/bad_plan.txtpb");
+  EXPECT_EQ(nowhere.status, 3);
+  EXPECT_NE(nowhere.out.find("cases[0] (nowhere): node 100000 out of range"), std::string::npos)
+      << nowhere.out;
   // Never overwritten.
   const testing::ToolRun again = testing::RunProgram(
       "somasim-reduce", Scene("kidney_reduction.scene.txtpb") + " --out " + out);

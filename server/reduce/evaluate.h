@@ -1,0 +1,45 @@
+// `somasim-reduce --evaluate` (issue 12; docs/reduced.md): a reduced model against the full
+// model it was made from, on load histories it was not built from (an EvaluationPlan). Each case
+// runs on the full model quasi-statically with its QLV internal variables (SolveQuasiStatic)
+// and on the reduced model (its quasi-static steps, creep scaling included), with the same
+// loads at the same times; compared:
+//   field error  sqrt(Σ_t |u(t) − û(t)|²) / sqrt(Σ_t |u(t)|²)  over every node and step,
+//   node error   the same at the loaded node only,
+//   and the loaded node's displacement at the end (full and reduced) [m].
+// Offline (minutes on liver4055); allocates.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "idl/reduced_model.pb.h"
+#include "server/models/fem/fem_model.h"
+#include "server/models/reduced/kl_model.h"
+
+namespace somasim::reduce {
+
+struct CaseResult {
+  std::string name, group;
+  double field_error = 0.0;
+  double node_error = 0.0;
+  double full_end_m = 0.0;     // |u| at the loaded node at the end [m]
+  double reduced_end_m = 0.0;  // |û| there [m]
+  int steps = 0;
+  bool converged = true;  // every full step converged
+};
+
+// The force scale of `c` at time t (piecewise linear; 1 without a history).
+double CaseScale(const reduced::EvaluationCase& c, double t);
+
+// Checks a plan against a model of `num_nodes` nodes; throws std::invalid_argument naming the
+// case and field (a node out of range or held, a force not of 3 finite values, times not
+// increasing, end_time or dt not > 0, too many steps).
+void CheckPlan(const reduced::EvaluationPlan& plan, int32_t num_nodes,
+               const std::vector<int32_t>& fixed);
+
+std::vector<CaseResult> Evaluate(const models::fem::FemModel& full,
+                                 const std::vector<int32_t>& fixed,
+                                 const models::reduced::KlReducedModel& reduced,
+                                 const reduced::EvaluationPlan& plan);
+
+}  // namespace somasim::reduce
