@@ -18,62 +18,58 @@
 namespace somasim::models::reduced {
 namespace {
 
-// The reconstruction, fused with the step's bookkeeping: for each DOF k,
-//   x_k ← X_k + Σ_j ξ_j B_kj,   v_k ← (x_k − x_k^old) / dt,   saving x_k^old and v_k^old,
-// with B in single precision, column j at modes + j · stride (stride a multiple of 16), the sum
+// The reconstruction: for each DOF k,
+//   x_k = X_k + Σ_j ξ_j B_kj,   v_k = Σ_j ξ̇_j B_kj   (ξ̇ = (ξ − ξ_prev) / dt),
+// with B in single precision, column j at modes + j · stride (stride a multiple of 16), the sums
 // in double. One pass over B (3N × n floats: 1.6 MB for liver4055 at 32 modes, which stays in a
-// 2 MB L2 cache where the doubles would not) and over the state.
+// 2 MB L2 cache where the doubles would not), reading X and writing x and v: a step reads and
+// writes nothing else of the field (the state is ξ; a rollback rebuilds x and v from it).
 struct Reconstruction {
   const float* modes;
   size_t stride;
   int32_t n;
   const double* xi;
+  const double* rate;  // ξ̇ [1/s]
   const double* rest;
   double* x;
   double* v;
-  double* good_x;
-  double* good_v;
-  double inv_dt;
 };
 
 void ReconstructRange(const Reconstruction& r, size_t begin, size_t end) {
   for (size_t k = begin; k < end; ++k) {
-    double u = 0.0;
+    double u = 0.0, w = 0.0;
     for (int32_t j = 0; j < r.n; ++j) {
-      u += r.xi[j] * static_cast<double>(r.modes[static_cast<size_t>(j) * r.stride + k]);
+      const auto b = static_cast<double>(r.modes[static_cast<size_t>(j) * r.stride + k]);
+      u += r.xi[j] * b;
+      w += r.rate[j] * b;
     }
-    const double next = r.rest[k] + u;
-    r.good_x[k] = r.x[k];
-    r.good_v[k] = r.v[k];
-    r.v[k] = (next - r.x[k]) * r.inv_dt;
-    r.x[k] = next;
+    r.x[k] = r.rest[k] + u;
+    r.v[k] = w;
   }
 }
 
 #ifdef SOMASIM_KL_AVX512
-// 32 DOFs at a time: four 8-double accumulators, each column's 32 floats converted as loaded.
+// 32 DOFs at a time: four 8-double accumulators for x and four for v, each column's 32 floats
+// converted as loaded (ξ_j and ξ̇_j broadcast once per column and chunk).
 __attribute__((target("avx512f"))) void ReconstructAvx512(const Reconstruction& r, size_t count) {
   size_t k = 0;
-  const __m512d inv_dt = _mm512_set1_pd(r.inv_dt);
   for (; k + 32 <= count; k += 32) {
-    __m512d a0 = _mm512_setzero_pd(), a1 = a0, a2 = a0, a3 = a0;
+    __m512d u[4], w[4];
+    for (int q = 0; q < 4; ++q) u[q] = w[q] = _mm512_setzero_pd();
     const float* column = r.modes + k;
     for (int32_t j = 0; j < r.n; ++j, column += r.stride) {
       const __m512d xi = _mm512_set1_pd(r.xi[j]);
-      a0 = _mm512_fmadd_pd(_mm512_maskz_cvtps_pd(0xFF, _mm256_loadu_ps(column)), xi, a0);
-      a1 = _mm512_fmadd_pd(_mm512_maskz_cvtps_pd(0xFF, _mm256_loadu_ps(column + 8)), xi, a1);
-      a2 = _mm512_fmadd_pd(_mm512_maskz_cvtps_pd(0xFF, _mm256_loadu_ps(column + 16)), xi, a2);
-      a3 = _mm512_fmadd_pd(_mm512_maskz_cvtps_pd(0xFF, _mm256_loadu_ps(column + 24)), xi, a3);
+      const __m512d rate = _mm512_set1_pd(r.rate[j]);
+      for (int q = 0; q < 4; ++q) {
+        const __m512d b = _mm512_maskz_cvtps_pd(0xFF, _mm256_loadu_ps(column + 8 * q));
+        u[q] = _mm512_fmadd_pd(b, xi, u[q]);
+        w[q] = _mm512_fmadd_pd(b, rate, w[q]);
+      }
     }
-    const __m512d acc[4] = {a0, a1, a2, a3};
-    for (size_t q = 0; q < 4; ++q) {
-      const size_t at = k + 8 * q;
-      const __m512d old_x = _mm512_loadu_pd(r.x + at);
-      const __m512d next = _mm512_add_pd(_mm512_loadu_pd(r.rest + at), acc[q]);
-      _mm512_storeu_pd(r.good_x + at, old_x);
-      _mm512_storeu_pd(r.good_v + at, _mm512_loadu_pd(r.v + at));
-      _mm512_storeu_pd(r.v + at, _mm512_mul_pd(_mm512_sub_pd(next, old_x), inv_dt));
-      _mm512_storeu_pd(r.x + at, next);
+    for (int q = 0; q < 4; ++q) {
+      const size_t at = k + 8 * static_cast<size_t>(q);
+      _mm512_storeu_pd(r.x + at, _mm512_add_pd(_mm512_loadu_pd(r.rest + at), u[q]));
+      _mm512_storeu_pd(r.v + at, w[q]);
     }
   }
   ReconstructRange(r, k, count);
@@ -90,28 +86,59 @@ void Reconstruct(const Reconstruction& r, size_t count) {
   ReconstructRange(r, 0, count);
 }
 
-// The state: reduced coordinates, the creep bookkeeping and the step's scratch, sized by
-// MakeState.
+// The state: reduced coordinates (the state proper: positions and velocities follow from ξ,
+// ξ_prev and dt), the creep bookkeeping and the step's scratch, sized by MakeState.
 class KlState final : public TissueState {
  public:
-  Eigen::VectorXd xi, good_xi;  // n
-  Eigen::VectorXd rhs, load;    // n: the step's right-hand side and the tool's part of it
-  Eigen::MatrixXd system;       // n × n: Bᵀ K B plus the springs
+  Eigen::VectorXd xi, xi_prev, rate;  // n: ξ, the last step's ξ, ξ̇
+  Eigen::VectorXd good_xi, good_xi_prev;
+  double dt = 0.0, good_dt = 0.0;  // [s] the last step's
+  Eigen::VectorXd rhs, load;       // n: the step's right-hand side and the tool's part of it
+  Eigen::MatrixXd system;          // n × n: Bᵀ K B plus the springs
   Eigen::LLT<Eigen::MatrixXd> llt;
   double onset = -1.0;  // [s] when the tool's load came on; < 0: no load
   double multiplier = 1.0, good_multiplier = 1.0;
   double good_onset = -1.0;
+  // The model's single-precision modes and rest positions (for the rollback's rebuild).
+  const float* modes = nullptr;
+  size_t stride = 0;
+  const double* rest = nullptr;
+
+  // x and v from ξ, ξ_prev and dt.
+  void Rebuild() {
+    if (dt > 0.0) {
+      rate = (xi - xi_prev) / dt;
+    } else {
+      rate.setZero();
+    }
+    const Reconstruction r{modes,
+                           stride,
+                           static_cast<int32_t>(xi.size()),
+                           xi.data(),
+                           rate.data(),
+                           rest,
+                           positions.data(),
+                           velocities.data()};
+    Reconstruct(r, static_cast<size_t>(positions.size()));
+  }
 
  protected:
   void SaveGood() override {
     good_xi = xi;
+    good_xi_prev = xi_prev;
+    good_dt = dt;
     good_multiplier = multiplier;
     good_onset = onset;
   }
+  // The base class has copied its last-good buffers (unused here) into x and v; they are
+  // rebuilt from the last accepted ξ.
   void RestoreGood() override {
     xi = good_xi;
+    xi_prev = good_xi_prev;
+    dt = good_dt;
     multiplier = good_multiplier;
     onset = good_onset;
+    Rebuild();
   }
 };
 
@@ -219,6 +246,12 @@ std::unique_ptr<TissueState> KlReducedModel::MakeState() const {
   const Eigen::Index n = data_.modes.cols();
   state->xi = Eigen::VectorXd::Zero(n);
   state->good_xi = state->xi;
+  state->xi_prev = state->xi;
+  state->good_xi_prev = state->xi;
+  state->rate = state->xi;
+  state->modes = modes_single_.data();
+  state->stride = stride_;
+  state->rest = data_.rest.data();
   state->rhs = Eigen::VectorXd::Zero(n);
   state->load = Eigen::VectorXd::Zero(n);
   state->system = data_.reduced_stiffness;
@@ -247,13 +280,23 @@ void KlReducedModel::Advance(const StepInputs& inputs, TissueState* base) const 
   double largest = 0.0;
   if (inputs.external_forces != nullptr) {
     const mesh::Points& f = *inputs.external_forces;
-    for (Eigen::Index i = 0; i < nodes; ++i) {
-      const double norm2 = f.col(i).squaredNorm();
-      if (norm2 == 0.0) continue;
-      s->load.noalias() += data_.modes.middleRows(3 * i, 3).transpose() * f.col(i);
-      if (norm2 > largest) {
-        largest = norm2;
-        loaded = static_cast<int32_t>(i);
+    // Tools load a few nodes: blocks of 8 nodes whose 24 values are all ±0 are skipped on an
+    // OR of their bits without the sign (a loop the compiler vectorises).
+    const auto* bits = reinterpret_cast<const uint64_t*>(f.data());
+    constexpr Eigen::Index kBlock = 8;
+    for (Eigen::Index first = 0; first < nodes; first += kBlock) {
+      const Eigen::Index last = std::min(nodes, first + kBlock);
+      uint64_t any = 0;
+      for (Eigen::Index k = 3 * first; k < 3 * last; ++k) any |= bits[k] << 1U;
+      if (any == 0) continue;
+      for (Eigen::Index i = first; i < last; ++i) {
+        const double norm2 = f.col(i).squaredNorm();
+        if (norm2 == 0.0) continue;
+        s->load.noalias() += data_.modes.middleRows(3 * i, 3).transpose() * f.col(i);
+        if (norm2 > largest) {
+          largest = norm2;
+          loaded = static_cast<int32_t>(i);
+        }
       }
     }
   }
@@ -289,6 +332,7 @@ void KlReducedModel::Advance(const StepInputs& inputs, TissueState* base) const 
       spring(node, s->positions.col(node), data_.penalty_stiffness);
     }
   }
+  s->xi_prev = s->xi;  // the last accepted step's
   if (springs) {
     s->llt.compute(s->system);
     s->xi = s->rhs;
@@ -297,13 +341,9 @@ void KlReducedModel::Advance(const StepInputs& inputs, TissueState* base) const 
     s->xi = s->rhs;
     factor_.solveInPlace(s->xi);
   }
-  // Reconstruction: x = X + B ξ, v = (x − x_prev) / dt.
-  const Reconstruction r{modes_single_.data(),  stride_,
-                         num_modes(),           s->xi.data(),
-                         data_.rest.data(),     s->positions.data(),
-                         s->velocities.data(),  LastGoodPositions(s),
-                         LastGoodVelocities(s), 1.0 / inputs.dt};
-  Reconstruct(r, static_cast<size_t>(3 * nodes));
+  // Reconstruction: x = X + B ξ, v = B (ξ − ξ_prev) / dt.
+  s->dt = inputs.dt;
+  s->Rebuild();
 }
 
 Eigen::Matrix3d KlReducedModel::LocalStiffness(const TissueState& state, int32_t node) const {

@@ -8,8 +8,8 @@
 // is scaled by the recorded creep curve of the loaded node, c(t − t₀), t₀ when the load came on
 // (a load held since t₀; the seed's method — a time-varying load is treated as if it had been
 // constant since it came on). Quasi-static: no inertia (velocities are the step's displacement
-// over dt, for display; they are not checked against a speed limit: only a non-finite value
-// rejects a step).
+// over dt (B ξ̇), for display; they are not checked against a speed limit: only a non-finite
+// value rejects a step).
 //
 // Per step (allocation-free; cost O(3N n) for the reconstruction plus O(n²) per loaded node):
 //   r  = Σ_axis g_axis Bᵀ(m e_axis)           gravity (precomputed per axis)
@@ -85,6 +85,9 @@ class KlReducedModel final : public TissueModel {
 
  protected:
   void Advance(const StepInputs& inputs, TissueState* state) const override;
+  // The state is ξ (with the last step's ξ and dt for the velocities): a rejected step rebuilds
+  // x and v from the last accepted ones, so the base class's last-good copies of the field are
+  // not needed (two fewer passes over it per step).
   bool SavesGoodStateItself() const override { return true; }
 
  private:

@@ -282,6 +282,35 @@ TEST(KlReducedModel, GraspsAndPrescribedNodesPullTheirNodesToTheTargets) {
   EXPECT_LT((other->positions.col(tip) - target).norm(), 1e-2 * 0.01);
 }
 
+// A step that overflows (a finite but absurd time step: the velocities become infinite) is
+// rejected; positions
+// and velocities are rebuilt from the last accepted ξ, and the next step goes on as if the bad
+// one had not been.
+TEST(KlReducedModel, ARejectedStepRestoresTheLastAcceptedState) {
+  const Beam beam;
+  const Trained trained(beam);
+  const KlReducedModel& model = *trained.model;
+  auto state = model.MakeState();
+  auto reference = model.MakeState();
+  StepOnce(model, trained.loads[0], state.get());
+  StepOnce(model, trained.loads[0], reference.get());
+  StepOnce(model, trained.loads[1], state.get());
+  StepOnce(model, trained.loads[1], reference.get());
+  const mesh::Points x = state->positions, v = state->velocities;
+  EXPECT_GT(v.norm(), 0.0);
+  StepInputs inputs;
+  inputs.dt = 1e-310;  // > 0 and finite, but the velocities overflow
+  inputs.external_forces = &trained.loads[2];
+  EXPECT_EQ(model.Step(inputs, state.get()), StepStatus::kRejectedNonFinite);
+  EXPECT_EQ(state->positions, x);
+  EXPECT_EQ(state->velocities, v);
+  EXPECT_EQ(state->counters.rejected_steps, 1);
+  StepOnce(model, trained.loads[2], state.get());
+  StepOnce(model, trained.loads[2], reference.get());
+  EXPECT_EQ(state->positions, reference->positions);
+  EXPECT_EQ(state->velocities, reference->velocities);
+}
+
 TEST(KlReducedModel, StepsAllocateNothing) {
   const Beam beam;
   const Trained trained(beam);
