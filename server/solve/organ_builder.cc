@@ -327,10 +327,11 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
       out.volume = mesh_gen::GenerateBuiltinOrgan(spec->name).volume;
     } else if (volume_model) {
       if (spec->kind == mesh_gen::OrganKind::kOpenSurface) {
-        throw lines.Error(out.field + ".builtin",
-                          std::string(spec->name) +
-                              " is an open surface and bounds no volume: FEM and reduced models need "
-                              "tetrahedra (use a particle model)");
+        throw lines.Error(
+            out.field + ".builtin",
+            std::string(spec->name) +
+                " is an open surface and bounds no volume: FEM and reduced models need "
+                "tetrahedra (use a particle model)");
       }
       // A closed surface filled with tetrahedra (a new node numbering: see builtin_organs.h).
       out.volume = mesh_gen::GenerateBuiltinOrganVolume(spec->name);
@@ -350,10 +351,11 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
       out.volume.vertices = std::move(data.vertices);
       out.volume.tetrahedra = std::move(data.tetrahedra);
     } else if (volume_model) {
-      throw lines.Error(out.field + ".file",
-                        "\"" + organ.file() +
-                            "\" holds no tetrahedra: FEM and reduced models need a volume mesh (fill a "
-                            "closed surface with: somasim-mesh tetrahedralize)");
+      throw lines.Error(
+          out.field + ".file",
+          "\"" + organ.file() +
+              "\" holds no tetrahedra: FEM and reduced models need a volume mesh (fill a "
+              "closed surface with: somasim-mesh tetrahedralize)");
     } else {
       surface.vertices = std::move(data.vertices);
       surface.triangles = std::move(data.triangles);
