@@ -1,4 +1,4 @@
-// Seed 000's reduced model (SPEC §4.5; De et al., "Karhunen–Loève ... viscoelastic scaling"):
+// Seed 000's reduced model (SPEC §4.5; seed 000 §3–4, Karhunen–Loève with viscoelastic scaling):
 // the displacement field is U = B ξ with B the Karhunen–Loève modes of the full model's
 // snapshots (pod.h), and ξ solves the Galerkin-projected linear statics
 //   (Bᵀ K B) ξ = Bᵀ f                                            (seed 000 eq. 6)
