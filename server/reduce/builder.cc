@@ -119,6 +119,7 @@ BuildReport BuildKlModel(const FemModel& full, const mesh::TetMesh& mesh, const 
         snapshots.emplace_back(
             Eigen::Map<const Eigen::VectorXd>(c.displacement.data(), c.displacement.size()));
         if (l == 0) level_states.push_back(full.rest_positions() + c.displacement);
+        out.training.push_back(c.displacement);
         out.cases.push_back(std::move(c));
       }
       report("snapshots", l * plan.forces.size() + m + 1, total);
@@ -155,6 +156,11 @@ BuildReport BuildKlModel(const FemModel& full, const mesh::TetMesh& mesh, const 
                  .converged;
         curve.multiplier.push_back((state->positions.col(p) - full.rest_positions().col(p)).norm() /
                                    u0);
+        const double t = plan.creep_interval * static_cast<double>(s + 1);
+        if (ok && (std::abs(t - 1.0) < 0.5 * plan.creep_interval ||
+                   std::abs(t - 5.0) < 0.5 * plan.creep_interval)) {
+          out.training.push_back(state->positions - full.rest_positions());
+        }
       }
       if (!ok) {
         ++out.unconverged;
@@ -162,6 +168,7 @@ BuildReport BuildKlModel(const FemModel& full, const mesh::TetMesh& mesh, const 
       }
       const mesh::Points last = state->positions - full.rest_positions();
       snapshots.emplace_back(Eigen::Map<const Eigen::VectorXd>(last.data(), last.size()));
+      out.training.push_back(last);
       out.data.creep.push_back(std::move(curve));
       report("creep", k + 1, plan.points.size());
     }
@@ -195,6 +202,78 @@ BuildReport BuildKlModel(const FemModel& full, const mesh::TetMesh& mesh, const 
   data.creep = std::move(out.data.creep);
   data.creep_radius = plan.creep_radius;
   out.data = std::move(data);
+  out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+  return out;
+}
+
+NonlinearBuildReport BuildNonlinearModel(
+    const FemModel& full, const mesh::TetMesh& mesh, const SamplingPlan& plan,
+    const BuildReport& kl, const std::function<void(const BuildProgress&)>& progress) {
+  const auto started = std::chrono::steady_clock::now();
+  const int32_t nodes = full.num_nodes();
+  Require(full.kind() == models::fem::FemKind::kHyperelastic,
+          "the nonlinear reduced model needs a hyperelastic organ");
+  Require(!kl.training.empty(), "no training state");
+  const auto report = [&](const char* stage, size_t done, size_t total) {
+    if (progress) progress({stage, done, total});
+  };
+  std::set<int32_t> held(plan.fixed.begin(), plan.fixed.end());
+  const mesh::Points normals = BoundaryNormals(mesh);
+  std::vector<Eigen::VectorXd> columns;
+  const auto add = [&](const mesh::Points& u) {
+    const double norm = u.norm();
+    if (norm > 0.0)
+      columns.emplace_back(Eigen::Map<const Eigen::VectorXd>(u.data(), u.size()) / norm);
+  };
+  for (const mesh::Points& u : kl.training) add(u);
+  // The region nodes' responses to 1 mN (linear: the tangent at rest, factorised once).
+  StaticWorkspace workspace;
+  size_t done = 0;
+  for (const int32_t r : plan.region_nodes) {
+    Require(r >= 0 && r < nodes, "region node " + std::to_string(r) + " out of range");
+    ++done;
+    if (held.count(r) != 0 || normals.col(r).squaredNorm() < 0.5) continue;
+    const Eigen::Vector3d inward = -Eigen::Vector3d(normals.col(r));
+    const auto [t1, t2] = Tangents(inward);
+    for (const Eigen::Vector3d& d : {inward, t1, t2}) {
+      mesh::Points forces = mesh::Points::Zero(3, nodes);
+      forces.col(r) = 1e-3 * d;
+      StaticLoads loads;
+      loads.external_forces = &forces;
+      loads.fixed_nodes = plan.fixed;
+      loads.reuse_factorisation = true;
+      auto state = full.MakeState();
+      if (full.SolveStatic(loads, state.get(), &workspace).converged) {
+        add(state->positions - full.rest_positions());
+      }
+    }
+    report("region responses", done, plan.region_nodes.size());
+  }
+  NonlinearBuildReport out;
+  report("modes", 0, 1);
+  Eigen::MatrixXd q(3 * static_cast<Eigen::Index>(nodes),
+                    static_cast<Eigen::Index>(columns.size()));
+  for (size_t c = 0; c < columns.size(); ++c) q.col(static_cast<Eigen::Index>(c)) = columns[c];
+  out.snapshots = columns.size();
+  models::reduced::PodModes pod = models::reduced::ModesOfSnapshots(q, plan.pod);
+  out.eigenvalues = pod.eigenvalues;
+  out.kept_fraction = pod.kept_fraction;
+  report("modes", 1, 1);
+  report("cubature", 0, 1);
+  out.cubature = models::reduced::TrainCubature(full, pod.modes, kl.training, plan.cubature);
+  report("cubature", 1, 1);
+  models::reduced::NonlinearModelData& d = out.data;
+  d.rest = full.rest_positions();
+  d.masses = full.masses();
+  d.modes = std::move(pod.modes);
+  d.tets.resize(4, static_cast<Eigen::Index>(out.cubature.elements.size()));
+  for (size_t k = 0; k < out.cubature.elements.size(); ++k) {
+    d.tets.col(static_cast<Eigen::Index>(k)) = full.elements().tets.col(out.cubature.elements[k]);
+  }
+  d.weights = out.cubature.weights;
+  d.elements = out.cubature.elements;
+  d.material = full.material();
+  d.prony = full.prony();
   out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
   return out;
 }

@@ -21,7 +21,9 @@
 
 #include "common/mesh/mesh_types.h"
 #include "server/models/fem/fem_model.h"
+#include "server/models/reduced/ecsw.h"
 #include "server/models/reduced/kl_model.h"
+#include "server/models/reduced/nonlinear_model.h"
 #include "server/models/reduced/pod.h"
 #include "server/models/reduced/reduce_fem.h"
 
@@ -37,6 +39,12 @@ struct SamplingPlan {
   models::reduced::PodSettings pod;           // the energy criterion
   double creep_radius = 0.01;                 // [m] for the model (kl_model.h)
   int load_steps = 1;                         // Newton's first load increments, > 0
+  // The nonlinear model's extras (BuildNonlinearModel): every boundary node of the interaction
+  // regions, whose responses to small loads along its normal and two tangents (the tangent at
+  // rest) join the snapshots, so that a touch anywhere in the regions is in the basis; and the
+  // cubature's settings.
+  std::vector<int32_t> region_nodes;
+  models::reduced::CubatureSettings cubature;
 };
 
 struct BuildProgress {
@@ -55,6 +63,18 @@ struct BuildReport {
   int unconverged = 0;                             // full solves that did not converge (left out)
   double seconds = 0.0;                            // wall time of the build
   std::vector<models::reduced::StaticCase> cases;  // the static cases (for evaluation)
+  // Every converged full solution [m] (3 × N each): the static cases and the creep runs' states
+  // (each run's state at 1 s, 5 s and its end): the nonlinear model's training set.
+  std::vector<mesh::Points> training;
+};
+
+struct NonlinearBuildReport {
+  models::reduced::NonlinearModelData data;
+  Eigen::VectorXd eigenvalues;  // of the normalised snapshots' QᵀQ, descending
+  double kept_fraction = 0.0;
+  size_t snapshots = 0;  // columns of Q (training states and region responses)
+  models::reduced::Cubature cubature;
+  double seconds = 0.0;  // wall time of this part of the build
 };
 
 // Throws std::invalid_argument naming what is wrong with the plan (a point out of range, held or
@@ -62,6 +82,15 @@ struct BuildReport {
 BuildReport BuildKlModel(const models::fem::FemModel& full, const mesh::TetMesh& mesh,
                          const SamplingPlan& plan,
                          const std::function<void(const BuildProgress&)>& progress = {});
+
+// The nonlinear reduced model (nonlinear_model.h) from the same plan and the KL build's training
+// states: modes by POD of the training states and of the region nodes' small-load responses,
+// each normalised to unit length (a 0.1 N state counts as much as a 1 N one), with the plan's
+// energy criterion; then the ECSW cubature trained on the training states. Throws
+// std::invalid_argument for a model that is not hyperelastic or a region node out of range.
+NonlinearBuildReport BuildNonlinearModel(
+    const models::fem::FemModel& full, const mesh::TetMesh& mesh, const SamplingPlan& plan,
+    const BuildReport& kl, const std::function<void(const BuildProgress&)>& progress = {});
 
 // The boundary nodes' outward unit normals (area-weighted over their boundary triangles), zero
 // for interior nodes: 3 × num_nodes.

@@ -23,12 +23,6 @@ using Eigen::Vector3d;
 [[noreturn]] void Refuse(const std::string& what) { throw std::invalid_argument("fem: " + what); }
 
 // e^{-dt/τ} and β = (τ/dt)(1 - e^{-dt/τ}) of a Prony term (β → 1 as dt/τ → 0).
-void PronyFactors(const PronyTerm& term, double dt, double* decay, double* beta) {
-  const double x = dt / term.tau;
-  *decay = std::exp(-x);
-  *beta = x > 1e-8 ? -std::expm1(-x) / x : 1.0 - 0.5 * x;
-}
-
 void CheckParameters(const FemParameters& p) {
   const auto finite_positive = [](double value, const char* what) {
     if (!(value > 0.0) || !std::isfinite(value)) {
@@ -121,6 +115,12 @@ class FemState final : public TissueState {
 }  // namespace
 
 std::vector<PronyTerm> LiverNava2008Prony() { return {{0.5054, 0.5784}, {0.1485, 6.8863}}; }
+
+void PronyFactors(const PronyTerm& term, double dt, double* decay, double* beta) {
+  const double x = dt / term.tau;
+  *decay = std::exp(-x);
+  *beta = x > 1e-8 ? -std::expm1(-x) / x : 1.0 - 0.5 * x;
+}
 
 std::unique_ptr<FemModel> FemModel::FromTetMesh(const mesh::TetMesh& mesh,
                                                 const FemParameters& parameters) {

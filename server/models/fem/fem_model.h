@@ -54,6 +54,9 @@ struct PronyTerm {
 inline constexpr size_t kMaxPronyTerms = 4;
 // Seed 000 table 1 (Nava et al. 2008): γ1 = 0.5054, τ1 = 0.5784 s, γ2 = 0.1485, τ2 = 6.8863 s.
 std::vector<PronyTerm> LiverNava2008Prony();
+// One Prony term over a step dt [s]: decay = e^{-dt/τ}, β = (τ / dt)(1 - e^{-dt/τ}) (see
+// ViscousStep).
+void PronyFactors(const PronyTerm& term, double dt, double* decay, double* beta);
 
 struct FemParameters {
   FemKind kind = FemKind::kCorotational;
@@ -233,6 +236,8 @@ class FemModel final : public TissueModel {
   const std::vector<double>& masses() const { return mass_; }  // [kg], num_nodes
   const mesh::Points& rest_positions() const { return rest_; }
   const TetElements& elements() const { return elements_; }
+  const HyperelasticMaterial& material() const { return material_; }  // kHyperelastic
+  const std::vector<PronyTerm>& prony() const { return prony_; }
   double lambda() const { return lambda_; }  // [Pa]
   double mu() const { return mu_; }          // [Pa]
 

@@ -8,83 +8,8 @@
 #include <string>
 #include <utility>
 
-#include "server/models/cpu_features.h"
-
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#include <immintrin.h>
-#define SOMASIM_KL_AVX512 1
-#endif
-
 namespace somasim::models::reduced {
 namespace {
-
-// The reconstruction: for each DOF k,
-//   x_k = X_k + Σ_j ξ_j B_kj,   v_k = Σ_j ξ̇_j B_kj   (ξ̇ = (ξ − ξ_prev) / dt),
-// with B in single precision, column j at modes + j · stride (stride a multiple of 16), the sums
-// in double. One pass over B (3N × n floats: 1.6 MB for liver4055 at 32 modes, which stays in a
-// 2 MB L2 cache where the doubles would not), reading X and writing x and v: a step reads and
-// writes nothing else of the field (the state is ξ; a rollback rebuilds x and v from it).
-struct Reconstruction {
-  const float* modes;
-  size_t stride;
-  int32_t n;
-  const double* xi;
-  const double* rate;  // ξ̇ [1/s]
-  const double* rest;
-  double* x;
-  double* v;
-};
-
-void ReconstructRange(const Reconstruction& r, size_t begin, size_t end) {
-  for (size_t k = begin; k < end; ++k) {
-    double u = 0.0, w = 0.0;
-    for (int32_t j = 0; j < r.n; ++j) {
-      const auto b = static_cast<double>(r.modes[static_cast<size_t>(j) * r.stride + k]);
-      u += r.xi[j] * b;
-      w += r.rate[j] * b;
-    }
-    r.x[k] = r.rest[k] + u;
-    r.v[k] = w;
-  }
-}
-
-#ifdef SOMASIM_KL_AVX512
-// 32 DOFs at a time: four 8-double accumulators for x and four for v, each column's 32 floats
-// converted as loaded (ξ_j and ξ̇_j broadcast once per column and chunk).
-__attribute__((target("avx512f"))) void ReconstructAvx512(const Reconstruction& r, size_t count) {
-  size_t k = 0;
-  for (; k + 32 <= count; k += 32) {
-    __m512d u[4], w[4];
-    for (int q = 0; q < 4; ++q) u[q] = w[q] = _mm512_setzero_pd();
-    const float* column = r.modes + k;
-    for (int32_t j = 0; j < r.n; ++j, column += r.stride) {
-      const __m512d xi = _mm512_set1_pd(r.xi[j]);
-      const __m512d rate = _mm512_set1_pd(r.rate[j]);
-      for (int q = 0; q < 4; ++q) {
-        const __m512d b = _mm512_maskz_cvtps_pd(0xFF, _mm256_loadu_ps(column + 8 * q));
-        u[q] = _mm512_fmadd_pd(b, xi, u[q]);
-        w[q] = _mm512_fmadd_pd(b, rate, w[q]);
-      }
-    }
-    for (int q = 0; q < 4; ++q) {
-      const size_t at = k + 8 * static_cast<size_t>(q);
-      _mm512_storeu_pd(r.x + at, _mm512_add_pd(_mm512_loadu_pd(r.rest + at), u[q]));
-      _mm512_storeu_pd(r.v + at, w[q]);
-    }
-  }
-  ReconstructRange(r, k, count);
-}
-#endif
-
-void Reconstruct(const Reconstruction& r, size_t count) {
-#ifdef SOMASIM_KL_AVX512
-  if (CpuHasAvx512()) {
-    ReconstructAvx512(r, count);
-    return;
-  }
-#endif
-  ReconstructRange(r, 0, count);
-}
 
 // The state: reduced coordinates (the state proper: positions and velocities follow from ξ,
 // ξ_prev and dt), the creep bookkeeping and the step's scratch, sized by MakeState.
@@ -100,8 +25,7 @@ class KlState final : public TissueState {
   double multiplier = 1.0, good_multiplier = 1.0;
   double good_onset = -1.0;
   // The model's single-precision modes and rest positions (for the rollback's rebuild).
-  const float* modes = nullptr;
-  size_t stride = 0;
+  const ModalField* field = nullptr;
   const double* rest = nullptr;
 
   // x and v from ξ, ξ_prev and dt.
@@ -111,15 +35,7 @@ class KlState final : public TissueState {
     } else {
       rate.setZero();
     }
-    const Reconstruction r{modes,
-                           stride,
-                           static_cast<int32_t>(xi.size()),
-                           xi.data(),
-                           rate.data(),
-                           rest,
-                           positions.data(),
-                           velocities.data()};
-    Reconstruct(r, static_cast<size_t>(positions.size()));
+    field->Reconstruct(xi.data(), rate.data(), rest, positions.data(), velocities.data());
   }
 
  protected:
@@ -226,15 +142,7 @@ KlReducedModel::KlReducedModel(KlModelData data) : data_(std::move(data)) {
       }
     }
   }
-  // B in single precision for the reconstruction, columns padded to 16 floats.
-  stride_ = (static_cast<size_t>(3 * nodes) + 15) / 16 * 16;
-  modes_single_.assign(stride_ * static_cast<size_t>(n), 0.0F);
-  for (Eigen::Index j = 0; j < n; ++j) {
-    for (Eigen::Index k = 0; k < 3 * nodes; ++k) {
-      modes_single_[static_cast<size_t>(j) * stride_ + static_cast<size_t>(k)] =
-          static_cast<float>(data_.modes(k, j));
-    }
-  }
+  field_ = ModalField(data_.modes);
   // Quasi-static: a load that comes on moves the tissue within one step, so the velocities
   // (displacement / dt) say nothing about divergence; only non-finite values do.
   set_speed_limit(std::numeric_limits<double>::max());
@@ -249,8 +157,7 @@ std::unique_ptr<TissueState> KlReducedModel::MakeState() const {
   state->xi_prev = state->xi;
   state->good_xi_prev = state->xi;
   state->rate = state->xi;
-  state->modes = modes_single_.data();
-  state->stride = stride_;
+  state->field = &field_;
   state->rest = data_.rest.data();
   state->rhs = Eigen::VectorXd::Zero(n);
   state->load = Eigen::VectorXd::Zero(n);
@@ -272,34 +179,12 @@ double KlReducedModel::CurveValue(int32_t curve, double t) const {
 
 void KlReducedModel::Advance(const StepInputs& inputs, TissueState* base) const {
   auto* s = static_cast<KlState*>(base);
-  const Eigen::Index nodes = data_.rest.cols();
   // Gravity, then the tool's load and the node it mostly acts on.
   s->rhs.noalias() = gravity_modes_ * inputs.gravity;
   s->load.setZero();
-  int32_t loaded = -1;
-  double largest = 0.0;
-  if (inputs.external_forces != nullptr) {
-    const mesh::Points& f = *inputs.external_forces;
-    // Tools load a few nodes: blocks of 8 nodes whose 24 values are all ±0 are skipped on an
-    // OR of their bits without the sign (a loop the compiler vectorises).
-    const auto* bits = reinterpret_cast<const uint64_t*>(f.data());
-    constexpr Eigen::Index kBlock = 8;
-    for (Eigen::Index first = 0; first < nodes; first += kBlock) {
-      const Eigen::Index last = std::min(nodes, first + kBlock);
-      uint64_t any = 0;
-      for (Eigen::Index k = 3 * first; k < 3 * last; ++k) any |= bits[k] << 1U;
-      if (any == 0) continue;
-      for (Eigen::Index i = first; i < last; ++i) {
-        const double norm2 = f.col(i).squaredNorm();
-        if (norm2 == 0.0) continue;
-        s->load.noalias() += data_.modes.middleRows(3 * i, 3).transpose() * f.col(i);
-        if (norm2 > largest) {
-          largest = norm2;
-          loaded = static_cast<int32_t>(i);
-        }
-      }
-    }
-  }
+  const int32_t loaded = inputs.external_forces != nullptr
+                             ? AddProjectedLoads(data_.modes, *inputs.external_forces, &s->load)
+                             : -1;
   const double t = s->time + inputs.dt;  // the end of the step
   if (loaded < 0) {
     s->onset = -1.0;

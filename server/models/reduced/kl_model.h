@@ -29,6 +29,7 @@
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
+#include "server/models/reduced/modal_field.h"
 #include "server/models/tissue_model.h"
 
 namespace somasim::models::reduced {
@@ -100,11 +101,7 @@ class KlReducedModel final : public TissueModel {
   std::vector<Eigen::Matrix3d> compliance_;  // N: B_i (Bᵀ K B)⁻¹ B_iᵀ [m/N]
   std::vector<int32_t> curve_of_node_;       // N: index into data_.creep, or -1
   std::vector<uint8_t> moves_;               // N: 1 when the modes move the node
-  // B in single precision for the reconstruction (the solves use data_.modes): column j at
-  // j · stride_, stride_ = 3N rounded up to 16. Positions differ from a double reconstruction
-  // by ~1e-7 of the displacement.
-  std::vector<float> modes_single_;
-  size_t stride_ = 0;
+  ModalField field_;  // B in single precision for the reconstruction (the solves use modes)
 };
 
 }  // namespace somasim::models::reduced

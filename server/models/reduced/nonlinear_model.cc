@@ -1,0 +1,489 @@
+#include "server/models/reduced/nonlinear_model.h"
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/LU>
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <utility>
+
+#include "server/models/fem/tet_elements.h"
+
+namespace somasim::models::reduced {
+namespace {
+
+using Eigen::Matrix3d;
+
+// The state: ξ and the Prony variables of the sampled elements (the state proper: positions and
+// velocities follow from ξ, ξ_prev and dt), the last good copies, and the step's scratch, sized
+// by MakeState.
+class NonlinearState final : public TissueState {
+ public:
+  Eigen::VectorXd xi, xi_prev, rate, good_xi, good_xi_prev;  // n
+  double dt = 0.0, good_dt = 0.0;                            // [s] the last step's
+  // QLV (fem_model.h's ViscousStep) per sampled element: h_k (9 × terms × m, term-minor) and
+  // the elastic stress S^e of the last step (9 × m) [Pa].
+  Eigen::VectorXd history, good_history, elastic_last, good_elastic_last;
+  // Scratch.
+  Eigen::VectorXd grad, stress, offset;  // 9m: vec(F − I), w V vec(P), the step's offset
+  Eigen::MatrixXd factors;               // 9m × n: blockdiag(w V ∂P/∂F) D
+  Eigen::MatrixXd tangent, springs;      // n × n
+  Eigen::LLT<Eigen::MatrixXd> llt;       // of the last tangent (plus springs)
+  Eigen::VectorXd external, internal, residual, delta, spring_rhs, trial;  // n
+  mutable Eigen::MatrixXd local;  // n × 3: LocalStiffness's K̂⁻¹ B_iᵀ
+  int newton_iterations = 0;
+  const ModalField* field = nullptr;
+  const double* rest = nullptr;
+
+  void Rebuild() {
+    if (dt > 0.0) {
+      rate = (xi - xi_prev) / dt;
+    } else {
+      rate.setZero();
+    }
+    field->Reconstruct(xi.data(), rate.data(), rest, positions.data(), velocities.data());
+  }
+
+ protected:
+  void SaveGood() override {
+    good_xi = xi;
+    good_xi_prev = xi_prev;
+    good_dt = dt;
+    good_history = history;
+    good_elastic_last = elastic_last;
+  }
+  void RestoreGood() override {
+    xi = good_xi;
+    xi_prev = good_xi_prev;
+    dt = good_dt;
+    history = good_history;
+    elastic_last = good_elastic_last;
+    Rebuild();
+  }
+};
+
+void Require(bool ok, const std::string& what) {
+  if (!ok) throw std::invalid_argument("nonlinear reduced model: " + what);
+}
+
+// The step's QLV context: g and each element's offset (9 × m) from the state's variables.
+double BeginViscous(const std::vector<fem::PronyTerm>& prony, double dt,
+                    const Eigen::VectorXd& history, const Eigen::VectorXd& elastic_last,
+                    Eigen::VectorXd* offset) {
+  if (prony.empty() || !(dt > 0.0)) {
+    offset->setZero();
+    return 1.0;
+  }
+  const size_t terms = prony.size();
+  double decay[fem::kMaxPronyTerms] = {}, weight[fem::kMaxPronyTerms] = {};
+  double g = 1.0;
+  for (size_t k = 0; k < terms; ++k) {
+    double beta = 0.0;
+    fem::PronyFactors(prony[k], dt, &decay[k], &beta);
+    weight[k] = prony[k].gamma * beta;
+    g += weight[k] - prony[k].gamma;  // γ∞ + Σ γ_k β_k
+  }
+  const Eigen::Index m = offset->size() / 9;
+  for (Eigen::Index e = 0; e < m; ++e) {
+    auto out = offset->segment<9>(9 * e);
+    out = -(weight[0] * elastic_last.segment<9>(9 * e));
+    for (size_t k = 1; k < terms; ++k) out -= weight[k] * elastic_last.segment<9>(9 * e);
+    for (size_t k = 0; k < terms; ++k) {
+      out += decay[k] * history.segment<9>(9 * (e * static_cast<Eigen::Index>(terms) +
+                                                static_cast<Eigen::Index>(k)));
+    }
+  }
+  return g;
+}
+
+}  // namespace
+
+std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearModelData data) {
+  const Eigen::Index nodes = data.rest.cols();
+  Require(nodes >= 1, "rest has no node");
+  Require(data.rest.allFinite(), "rest positions are not finite");
+  Require(
+      static_cast<Eigen::Index>(data.masses.size()) == nodes,
+      "masses: " + std::to_string(data.masses.size()) + " for " + std::to_string(nodes) + " nodes");
+  for (const double m : data.masses) Require(std::isfinite(m) && m > 0.0, "a mass is not > 0");
+  const Eigen::Index n = data.modes.cols();
+  Require(data.modes.rows() == 3 * nodes && n >= 1 && n <= 3 * nodes,
+          "modes must be 3N × n with 1 <= n <= 3N, got " + std::to_string(data.modes.rows()) +
+              " × " + std::to_string(n) + " for N = " + std::to_string(nodes));
+  Require(data.modes.allFinite(), "a mode is not finite");
+  const Eigen::Index m = data.tets.cols();
+  Require(m >= 1, "no sampled element");
+  Require(static_cast<Eigen::Index>(data.weights.size()) == m,
+          "weights: " + std::to_string(data.weights.size()) + " for " + std::to_string(m) +
+              " elements");
+  for (const double w : data.weights) Require(std::isfinite(w) && w > 0.0, "a weight is not > 0");
+  Require(data.elements.empty() || static_cast<Eigen::Index>(data.elements.size()) == m,
+          "elements: " + std::to_string(data.elements.size()) + " for " + std::to_string(m) +
+              " sampled elements");
+  for (const int32_t e : data.elements) Require(e >= 0, "an element index is negative");
+  for (Eigen::Index e = 0; e < m; ++e) {
+    for (int a = 0; a < 4; ++a) {
+      Require(data.tets(a, e) >= 0 && data.tets(a, e) < nodes,
+              "sampled element " + std::to_string(e) + ": corner " +
+                  std::to_string(data.tets(a, e)) + " out of range");
+    }
+  }
+  try {
+    fem::CheckMaterial(data.material);
+  } catch (const std::invalid_argument& error) {
+    Require(false, std::string("material: ") + error.what());
+  }
+  Require(data.prony.size() <= fem::kMaxPronyTerms, "more than 4 Prony terms");
+  double gamma_sum = 0.0;
+  for (const fem::PronyTerm& t : data.prony) {
+    Require(std::isfinite(t.gamma) && t.gamma >= 0.0 && std::isfinite(t.tau) && t.tau > 0.0,
+            "a Prony term needs gamma >= 0 and tau > 0");
+    gamma_sum += t.gamma;
+  }
+  Require(gamma_sum <= 1.0, "the Prony gammas sum above 1");
+  Require(std::isfinite(data.penalty_stiffness) && data.penalty_stiffness > 0.0,
+          "penalty_stiffness must be > 0");
+  Require(std::isfinite(data.max_local_stiffness) && data.max_local_stiffness > 0.0,
+          "max_local_stiffness must be > 0");
+  Require(std::isfinite(data.newton_tolerance) && data.newton_tolerance > 0.0,
+          "newton_tolerance must be > 0");
+  Require(data.max_newton_iterations >= 1, "max_newton_iterations must be >= 1");
+  // The sampled elements' geometry (throws for an inverted or flat one).
+  mesh::TetMesh sampled;
+  sampled.vertices = data.rest;
+  sampled.tetrahedra = data.tets;
+  fem::TetElements elements;
+  try {
+    elements = fem::BuildTetElements(sampled, "sampled elements");
+  } catch (const std::invalid_argument& error) {
+    Require(false, error.what());
+  }
+  return std::unique_ptr<NonlinearReducedModel>(
+      new NonlinearReducedModel(std::move(data), elements));
+}
+
+NonlinearReducedModel::NonlinearReducedModel(NonlinearModelData data,
+                                             const fem::TetElements& elements)
+    : data_(std::move(data)) {
+  const Eigen::Index nodes = data_.rest.cols(), n = data_.modes.cols(), m = data_.tets.cols();
+  // D_ê (9 × n): vec(F − I) = Σ_a u_a ∇N_aᵀ with u_a = B_a ξ, so row i + 3j of D_ê is
+  // Σ_a ∇N_a[j] B(3 node_a + i, :).
+  gradient_map_ = Eigen::MatrixXd::Zero(9 * m, n);
+  scale_.resize(m);
+  for (Eigen::Index e = 0; e < m; ++e) {
+    scale_(e) = data_.weights[static_cast<size_t>(e)] * elements.volumes[static_cast<size_t>(e)];
+    for (int a = 0; a < 4; ++a) {
+      const Eigen::Vector3d grad = elements.gradients.col(4 * e + a);
+      const auto rows = data_.modes.middleRows(3 * data_.tets(a, e), 3);
+      for (int j = 0; j < 3; ++j) {
+        gradient_map_.middleRows(9 * e + 3 * j, 3) += grad(j) * rows;
+      }
+    }
+  }
+  gravity_modes_ = Eigen::MatrixXd::Zero(n, 3);
+  moves_.assign(static_cast<size_t>(nodes), 0);
+  const double mode_scale = data_.modes.cwiseAbs().maxCoeff();
+  for (Eigen::Index i = 0; i < nodes; ++i) {
+    const auto rows = data_.modes.middleRows(3 * i, 3);
+    for (int a = 0; a < 3; ++a) gravity_modes_.col(a) += data_.masses[i] * rows.row(a).transpose();
+    moves_[static_cast<size_t>(i)] = rows.cwiseAbs().maxCoeff() > 1e-9 * mode_scale ? 1 : 0;
+  }
+  field_ = ModalField(data_.modes);
+  // Quasi-static, as the KL model: only non-finite values reject a step.
+  set_speed_limit(std::numeric_limits<double>::max());
+}
+
+bool NonlinearReducedModel::Stresses(const double* h, double g, const double* offset,
+                                     double* p) const {
+  const Eigen::Index m = data_.tets.cols();
+  for (Eigen::Index e = 0; e < m; ++e) {
+    const Matrix3d f = Matrix3d::Identity() + Eigen::Map<const Matrix3d>(h + 9 * e);
+    if (!(f.determinant() > 0.0)) return false;
+    Matrix3d stress = g * fem::FirstPiolaStress(data_.material, f);
+    if (offset != nullptr) stress.noalias() += f * Eigen::Map<const Matrix3d>(offset + 9 * e);
+    Eigen::Map<Matrix3d>(p + 9 * e) = scale_(e) * stress;
+  }
+  return true;
+}
+
+void NonlinearReducedModel::TangentFactors(const double* h, double g, const double* offset,
+                                           double* t) const {
+  const Eigen::Index m = data_.tets.cols(), n = data_.modes.cols();
+  Eigen::Map<Eigen::MatrixXd> out(t, 9 * m, n);
+  for (Eigen::Index e = 0; e < m; ++e) {
+    const Matrix3d f = Matrix3d::Identity() + Eigen::Map<const Matrix3d>(h + 9 * e);
+    const fem::StressPoint point = fem::PrepareStressDifferential(data_.material, f);
+    Eigen::Matrix<double, 9, 9> c;  // ∂vec P / ∂vec F, column c + 3d for dF = e_c e_dᵀ
+    for (int d = 0; d < 3; ++d) {
+      for (int r = 0; r < 3; ++r) {
+        Matrix3d df = Matrix3d::Zero();
+        df(r, d) = 1.0;
+        Matrix3d dp = g * fem::StressDifferential(point, df);
+        if (offset != nullptr) {  // d(F O) = dF O: row r of O's row d
+          dp.row(r) += Eigen::Map<const Matrix3d>(offset + 9 * e).row(d);
+        }
+        c.col(r + 3 * d) = scale_(e) * Eigen::Map<const Eigen::Matrix<double, 9, 1>>(dp.data());
+      }
+    }
+    out.middleRows(9 * e, 9).noalias() = c.lazyProduct(gradient_map_.middleRows(9 * e, 9));
+  }
+}
+
+std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
+  auto state = std::make_unique<NonlinearState>();
+  InitialiseState(data_.rest, state.get());
+  const Eigen::Index n = data_.modes.cols(), m = data_.tets.cols();
+  const auto terms = static_cast<Eigen::Index>(data_.prony.size());
+  state->xi = Eigen::VectorXd::Zero(n);
+  state->xi_prev = state->xi;
+  state->rate = state->xi;
+  state->good_xi = state->xi;
+  state->good_xi_prev = state->xi;
+  state->history = Eigen::VectorXd::Zero(9 * m * terms);
+  state->good_history = state->history;
+  state->elastic_last = Eigen::VectorXd::Zero(9 * m);
+  state->good_elastic_last = state->elastic_last;
+  state->grad = Eigen::VectorXd::Zero(9 * m);
+  state->stress = state->grad;
+  state->offset = state->grad;
+  state->factors = Eigen::MatrixXd::Zero(9 * m, n);
+  state->springs = Eigen::MatrixXd::Zero(n, n);
+  state->external = Eigen::VectorXd::Zero(n);
+  state->internal = state->external;
+  state->residual = state->external;
+  state->delta = state->external;
+  state->spring_rhs = state->external;
+  state->trial = state->external;
+  state->local = Eigen::MatrixXd::Zero(n, 3);
+  state->field = &field_;
+  state->rest = data_.rest.data();
+  // The tangent at rest, factorised: the first step's Newton and LocalStiffness start from it.
+  TangentFactors(state->grad.data(), 1.0, nullptr, state->factors.data());
+  state->tangent.noalias() = gradient_map_.transpose() * state->factors;
+  state->llt = Eigen::LLT<Eigen::MatrixXd>(n);
+  state->llt.compute(state->tangent);
+  return state;
+}
+
+void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base) const {
+  auto* s = static_cast<NonlinearState*>(base);
+  // Loads: gravity and the tool's forces (projected), then the springs' constant part.
+  s->external.noalias() = gravity_modes_ * inputs.gravity;
+  if (inputs.external_forces != nullptr) {
+    AddProjectedLoads(data_.modes, *inputs.external_forces, &s->external);
+  }
+  bool springs = false;
+  const auto spring = [&](int32_t node, const Eigen::Vector3d& target, double k) {
+    if (k == 0.0) return;
+    if (!springs) {
+      s->springs.setZero();
+      s->spring_rhs.setZero();
+      springs = true;
+    }
+    const auto rows = data_.modes.middleRows(3 * node, 3);
+    s->springs.noalias() += k * rows.transpose() * rows;
+    s->spring_rhs.noalias() += k * rows.transpose() * (target - data_.rest.col(node));
+  };
+  for (const Attachment& a : inputs.attachments) spring(a.node, a.target, a.stiffness);
+  for (size_t p = 0; p < inputs.prescribed_nodes.size(); ++p) {
+    spring(inputs.prescribed_nodes[p],
+           inputs.prescribed_positions->col(static_cast<Eigen::Index>(p)), data_.penalty_stiffness);
+  }
+  for (const int32_t node : inputs.fixed_nodes) {
+    if (moves_[static_cast<size_t>(node)] != 0) {
+      spring(node, s->positions.col(node), data_.penalty_stiffness);
+    }
+  }
+  const double g = BeginViscous(data_.prony, inputs.dt, s->history, s->elastic_last, &s->offset);
+  const double* offset = data_.prony.empty() ? nullptr : s->offset.data();
+  // Newton's method, reusing the last factor while it halves the residual, with a backtracking
+  // line search on |r| (a correction that inverts an element or raises |r| is halved; with a
+  // reused factor, the tangent is refreshed first).
+  s->xi_prev = s->xi;
+  s->dt = inputs.dt;
+  double scale = 0.0;
+  // r at ξ (into s->residual; s->grad and s->stress follow ξ); false if an element inverts or a
+  // value is not finite.
+  const auto evaluate = [&](const Eigen::VectorXd& xi, double* norm) {
+    s->grad.noalias() = gradient_map_ * xi;
+    if (!Stresses(s->grad.data(), g, offset, s->stress.data())) return false;
+    s->internal.noalias() = -(gradient_map_.transpose() * s->stress);
+    s->residual = s->external + s->internal;
+    scale = s->external.norm() + s->internal.norm();
+    if (springs) {
+      s->residual += s->spring_rhs;
+      s->residual.noalias() -= s->springs * xi;
+      scale += s->spring_rhs.norm();
+    }
+    *norm = s->residual.norm();
+    return std::isfinite(*norm);
+  };
+  const auto refactor = [&] {  // the tangent at ξ (s->grad must be ξ's)
+    TangentFactors(s->grad.data(), g, offset, s->factors.data());
+    s->tangent.noalias() = gradient_map_.transpose() * s->factors;
+    if (springs) s->tangent += s->springs;
+    s->llt.compute(s->tangent);
+    return s->llt.info() == Eigen::Success;
+  };
+  double norm = 0.0;
+  bool ok = evaluate(s->xi, &norm), converged = false;
+  // A fresh tangent at once when springs act (their stiffness dwarfs the tissue's: a factor
+  // without them barely helps).
+  bool refresh = springs, fresh = false;
+  int iterations = 0;
+  while (ok) {
+    if (norm <= data_.newton_tolerance * scale || norm == 0.0) {
+      converged = true;
+      break;
+    }
+    if (iterations >= data_.max_newton_iterations) break;
+    if (refresh && !fresh) {
+      if (!refactor()) {
+        ok = false;
+        break;
+      }
+      fresh = true;
+    }
+    s->delta = s->residual;
+    s->llt.solveInPlace(s->delta);
+    double alpha = 1.0, trial_norm = 0.0;
+    int halvings = 0;
+    while (true) {
+      s->trial = s->xi + alpha * s->delta;
+      const bool trial_ok = evaluate(s->trial, &trial_norm);
+      if (trial_ok && (trial_norm < norm || trial_norm <= data_.newton_tolerance * scale)) break;
+      if (!fresh) {  // a stale factor's direction: refresh it at ξ and start again
+        double again = 0.0;
+        ok = evaluate(s->xi, &again) && refactor();
+        if (!ok) break;
+        fresh = true;
+        s->delta = s->residual;
+        s->llt.solveInPlace(s->delta);
+        alpha = 1.0;
+        continue;
+      }
+      if (++halvings > 12) break;  // no progress (rounding): keep ξ, unconverged
+      alpha *= 0.5;
+    }
+    if (!ok) break;
+    if (halvings > 12) {
+      double again = 0.0;
+      ok = evaluate(s->xi, &again);  // grad and stress back at ξ
+      break;
+    }
+    s->xi = s->trial;  // s->residual, grad and stress are the trial's
+    ++iterations;
+    refresh = trial_norm > 0.5 * norm;
+    fresh = false;
+    norm = trial_norm;
+  }
+  s->newton_iterations = iterations;
+  s->counters.solver_iterations += iterations;
+  if (!ok) {
+    s->xi.setConstant(std::numeric_limits<double>::quiet_NaN());  // rejected: rolled back
+    s->Rebuild();
+    return;
+  }
+  if (!converged) ++s->counters.solver_unconverged;
+  // The Prony variables advance with the accepted elastic stresses S^e = F⁻¹ P^e.
+  if (!data_.prony.empty()) {
+    const size_t terms = data_.prony.size();
+    double decay[fem::kMaxPronyTerms] = {}, weight[fem::kMaxPronyTerms] = {};
+    for (size_t k = 0; k < terms; ++k) {
+      double beta = 0.0;
+      fem::PronyFactors(data_.prony[k], inputs.dt, &decay[k], &beta);
+      weight[k] = data_.prony[k].gamma * beta;
+    }
+    const Eigen::Index m = data_.tets.cols();
+    for (Eigen::Index e = 0; e < m; ++e) {
+      const Matrix3d f = Matrix3d::Identity() + Eigen::Map<const Matrix3d>(s->grad.data() + 9 * e);
+      const Matrix3d now = f.inverse() * fem::FirstPiolaStress(data_.material, f);
+      Eigen::Map<Matrix3d> last(s->elastic_last.data() + 9 * e);
+      for (size_t k = 0; k < terms; ++k) {
+        Eigen::Map<Matrix3d> h(s->history.data() + 9 * (e * static_cast<Eigen::Index>(terms) +
+                                                        static_cast<Eigen::Index>(k)));
+        h = decay[k] * h + weight[k] * (now - last);
+      }
+      last = now;
+    }
+  }
+  s->Rebuild();
+}
+
+void NonlinearReducedModel::ReducedForces(const TissueState& state, const Eigen::VectorXd& xi,
+                                          double dt, Eigen::VectorXd* force,
+                                          Eigen::MatrixXd* tangent) const {
+  const auto& s = static_cast<const NonlinearState&>(state);
+  const Eigen::Index m = data_.tets.cols();
+  Eigen::VectorXd offset(9 * m), grad = gradient_map_ * xi, stress(9 * m);
+  const double g = BeginViscous(data_.prony, dt, s.history, s.elastic_last, &offset);
+  const double* off = data_.prony.empty() || !(dt > 0.0) ? nullptr : offset.data();
+  if (!Stresses(grad.data(), g, off, stress.data())) {
+    force->setConstant(xi.size(), std::numeric_limits<double>::quiet_NaN());
+  } else {
+    *force = -(gradient_map_.transpose() * stress);
+  }
+  if (tangent != nullptr) {
+    Eigen::MatrixXd factors(9 * m, xi.size());
+    TangentFactors(grad.data(), g, off, factors.data());
+    *tangent = gradient_map_.transpose() * factors;
+  }
+}
+
+Eigen::Matrix3d NonlinearReducedModel::LocalStiffness(const TissueState& state,
+                                                      int32_t node) const {
+  if (node < 0 || node >= num_nodes()) return Eigen::Matrix3d::Zero();
+  const auto& s = static_cast<const NonlinearState&>(state);
+  const auto rows = data_.modes.middleRows(3 * node, 3);  // B_i: 3 × n
+  s.local = rows.transpose();
+  s.llt.solveInPlace(s.local);
+  const Matrix3d compliance = rows * s.local;
+  const Eigen::SelfAdjointEigenSolver<Matrix3d> eigen(compliance);
+  Eigen::Vector3d stiffness;
+  for (int k = 0; k < 3; ++k) {
+    const double c = eigen.eigenvalues()(k);
+    stiffness(k) = c * data_.max_local_stiffness > 1.0 ? 1.0 / c : data_.max_local_stiffness;
+  }
+  return eigen.eigenvectors() * stiffness.asDiagonal() * eigen.eigenvectors().transpose();
+}
+
+void NonlinearReducedModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
+  Eigen::VectorXd reduced;
+  ReducedForces(state, Coordinates(state), 0.0, &reduced, nullptr);
+  forces->resize(3, num_nodes());
+  Eigen::Map<Eigen::VectorXd>(forces->data(), forces->size()).noalias() = data_.modes * reduced;
+}
+
+EnergyReport NonlinearReducedModel::Energy(const TissueState& state,
+                                           const Eigen::Vector3d& gravity) const {
+  EnergyReport report;
+  report.elastic = ElasticEnergyAt(Coordinates(state));
+  for (Eigen::Index i = 0; i < data_.rest.cols(); ++i) {
+    const double m = data_.masses[static_cast<size_t>(i)];
+    report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
+    report.gravity -= m * gravity.dot(state.positions.col(i));
+    report.momentum += m * state.velocities.col(i);
+  }
+  return report;
+}
+
+double NonlinearReducedModel::ElasticEnergyAt(const Eigen::VectorXd& xi) const {
+  const Eigen::VectorXd grad = gradient_map_ * xi;
+  double energy = 0.0;
+  for (Eigen::Index e = 0; e < data_.tets.cols(); ++e) {
+    const Matrix3d f = Matrix3d::Identity() + Eigen::Map<const Matrix3d>(grad.data() + 9 * e);
+    energy += scale_(e) * fem::StrainEnergy(data_.material, f);
+  }
+  return energy;
+}
+
+const Eigen::VectorXd& NonlinearReducedModel::Coordinates(const TissueState& state) const {
+  return static_cast<const NonlinearState&>(state).xi;
+}
+
+int NonlinearReducedModel::LastNewtonIterations(const TissueState& state) const {
+  return static_cast<const NonlinearState&>(state).newton_iterations;
+}
+
+}  // namespace somasim::models::reduced

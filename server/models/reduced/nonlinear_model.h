@@ -1,0 +1,121 @@
+// The nonlinear reduced model that beats seed 000's (issue 12, SPEC §4.5; docs/reduced.md): the
+// displacement is U = B ξ on modes B (3N × n) as in seed 000, but instead of one linear reduced
+// stiffness it solves the Galerkin projection of the full hyperelastic–viscoelastic equilibrium
+//   r(ξ) = Bᵀ f_ext + Bᵀ f_int(X + B ξ) = 0,
+// with the reduced internal force and tangent evaluated by energy-conserving sampling and
+// weighting (ECSW; Farhat, Avery, Chapman & Cortial 2014): a few elements ê with weights w_ê > 0
+// (ecsw.h) stand in for the sum over all elements,
+//   Bᵀ f_int ≈ −Σ_ê w_ê V_ê D_êᵀ vec P(F_ê),   K̂ = Σ_ê w_ê V_ê D_êᵀ (∂P/∂F)_ê D_ê,
+// where D_ê (9 × n) maps ξ to the element's displacement gradient, vec(F_ê − I) = D_ê ξ, so an
+// element costs O(9 n) for its force and O(81 n + 9 n²) for its tangent, independently of N.
+// The weights are positive, so the reduced forces stay the gradient of a positive-weighted sum
+// of element energies (Lagrangian structure, stability).
+// Material: the full model's hyperelastic law (hyperelastic.h) and QLV (fem_model.h's
+// ViscousStep: S = g S^e(F) + offset, P = F S) with the Prony internal variables kept on the
+// sampled elements only — the viscoelasticity lives in the reduced space, not in a creep
+// multiplier, so loads that vary, move or are released relax as the full model does.
+//
+// Quasi-static, as the full model's SolveQuasiStatic and seed 000's model (no inertia; the
+// velocities are the step's displacement over dt, for display): each step solves r(ξ) = 0 by
+// Newton's method with the reduced tangent (an n × n Cholesky factorisation), reusing the last
+// factor while it shrinks the residual at least twofold per iteration (modified Newton: a held
+// or slowly moving load costs one or two force evaluations and no tangent), with a backtracking
+// line search on |r| (a correction that would invert an element or raise |r| is halved, after
+// refreshing a reused factor); a load too large to balance ends the step unconverged (counted)
+// at the last iterate, no element inverted. Grasps, prescribed
+// nodes and fixed nodes the modes can move are springs (penalty_stiffness) in r and K̂. The
+// Prony variables advance once the step has converged. Allocation-free; the full field is
+// reconstructed once per step (modal_field.h). A reduced model cannot be cut.
+#pragma once
+
+#include <Eigen/Cholesky>
+#include <Eigen/Core>
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "common/mesh/mesh_types.h"
+#include "server/models/fem/fem_model.h"
+#include "server/models/fem/hyperelastic.h"
+#include "server/models/fem/tet_elements.h"
+#include "server/models/reduced/modal_field.h"
+#include "server/models/tissue_model.h"
+
+namespace somasim::models::reduced {
+
+struct NonlinearModelData {
+  mesh::Points rest;           // X [m], 3 × N (N >= 1), finite
+  std::vector<double> masses;  // [kg], N, each > 0 (gravity, energy, momentum)
+  Eigen::MatrixXd modes;       // B [-], 3N × n (1 <= n <= 3N), row 3i + axis
+  // The sampled elements (ECSW): their corners (4 × m, m >= 1, indices in [0, N), positively
+  // oriented at rest) and weights w (m, each finite and > 0). `elements` (m, optional: empty or
+  // m values) are their indices in the full mesh, for people and files.
+  mesh::Tetrahedra tets;
+  std::vector<double> weights;
+  std::vector<int32_t> elements;
+  fem::HyperelasticMaterial material = fem::LiverNava2008();
+  std::vector<fem::PronyTerm> prony;  // QLV as in FemParameters::prony; empty: elastic
+  double penalty_stiffness = 1e5;     // [N/m], > 0 (as KlModelData)
+  double max_local_stiffness = 1e4;   // [N/m], > 0 (as KlModelData)
+  // Newton stops at |r| <= newton_tolerance × (|Bᵀ f_ext| + |Bᵀ f_int|) (> 0) or after
+  // max_newton_iterations (>= 1), accepting the last iterate (counted as unconverged).
+  double newton_tolerance = 1e-8;
+  int max_newton_iterations = 30;
+};
+
+class NonlinearReducedModel final : public TissueModel {
+ public:
+  // Throws std::invalid_argument naming the field that is wrong (sizes, a non-finite value, an
+  // element index out of range, an inverted or flat element, a weight not > 0, a bad material or
+  // Prony term).
+  static std::unique_ptr<NonlinearReducedModel> Create(NonlinearModelData data);
+
+  int32_t num_nodes() const override { return static_cast<int32_t>(data_.masses.size()); }
+  int32_t num_modes() const { return static_cast<int32_t>(data_.modes.cols()); }
+  int32_t num_elements() const { return static_cast<int32_t>(data_.weights.size()); }
+  std::unique_ptr<TissueState> MakeState() const override;
+  // The condensed stiffness at `node` from the reduced tangent of the state's last
+  // factorisation: (B_i K̂⁻¹ B_iᵀ)⁻¹, eigenvalues capped at max_local_stiffness (directions the
+  // modes do not move the node in). O(n²).
+  Eigen::Matrix3d LocalStiffness(const TissueState& state, int32_t node) const override;
+  // B (Bᵀ f_int) [N]: the internal forces' projection onto the modes (for orthonormal modes,
+  // the part of the full model's internal forces the reduced model sees), elastic part.
+  void InternalForces(const TissueState& state, mesh::Points* forces) const override;
+  // Elastic: Σ_ê w_ê V_ê W(F_ê).
+  EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
+
+  // The reduced internal force Bᵀ f_int at ξ (n) with the state's Prony variables as if for a
+  // step of dt (dt <= 0: elastic), and the reduced tangent −∂/∂ξ of it (n × n) when `tangent`
+  // is given. For tests (finite differences) and the builder. Allocates.
+  void ReducedForces(const TissueState& state, const Eigen::VectorXd& xi, double dt,
+                     Eigen::VectorXd* force, Eigen::MatrixXd* tangent) const;
+
+  // Σ_ê w_ê V_ê W(F_ê) [J] at ξ (n).
+  double ElasticEnergyAt(const Eigen::VectorXd& xi) const;
+  const Eigen::VectorXd& Coordinates(const TissueState& state) const;
+  int LastNewtonIterations(const TissueState& state) const;
+  const NonlinearModelData& data() const { return data_; }
+
+ protected:
+  void Advance(const StepInputs& inputs, TissueState* state) const override;
+  // The state is ξ and the Prony variables: a rejected step rebuilds x and v from the last
+  // accepted ones (as the KL model).
+  bool SavesGoodStateItself() const override { return true; }
+
+ private:
+  NonlinearReducedModel(NonlinearModelData data, const fem::TetElements& elements);
+  // Stresses P of every sampled element at the state's gradient buffer (vec(F − I), 9 × m)
+  // into p (9 × m), scaled by w V; false if an element is inverted (det F <= 0) or not finite.
+  bool Stresses(const double* h, double g, const double* offset, double* p) const;
+  // T (9m × n) = blockdiag(w V ∂P/∂F) D at the gradients h.
+  void TangentFactors(const double* h, double g, const double* offset, double* t) const;
+
+  NonlinearModelData data_;
+  Eigen::MatrixXd gradient_map_;   // D: 9m × n, rows 9ê..9ê+8 = D_ê
+  Eigen::VectorXd scale_;          // m: w_ê V_ê [m³]
+  Eigen::MatrixXd gravity_modes_;  // n × 3: column a = Bᵀ (m e_a)
+  std::vector<uint8_t> moves_;     // N: 1 when the modes move the node
+  ModalField field_;
+};
+
+}  // namespace somasim::models::reduced

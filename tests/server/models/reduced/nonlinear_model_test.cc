@@ -1,0 +1,406 @@
+// The nonlinear reduced model (server/models/reduced/nonlinear_model.h) and its ECSW cubature
+// (ecsw.h): with a complete basis and every element at weight 1 it is the full hyperelastic QLV
+// model's quasi-static solution step by step; its forces are the gradient of its energy and its
+// tangent their derivative (finite differences); a trained cubature reproduces the reduced
+// forces of all elements to its tolerance on held-out states with far fewer elements; NNLS finds
+// a known sparse solution; steps allocate nothing; bad data is refused by name; a load too
+// large to balance stops the step unconverged, no element inverted.
+#include "server/models/reduced/nonlinear_model.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <functional>
+#include <limits>
+#include <numeric>
+#include <random>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "common/mesh_gen/structured_meshes.h"
+#include "server/models/fem/fem_model.h"
+#include "server/models/reduced/ecsw.h"
+#include "server/models/reduced/pod.h"
+#include "tests/support/allocation_counter.h"
+
+namespace somasim::models::reduced {
+namespace {
+
+using Eigen::Vector3d;
+
+// A 6 × 2 × 2 cm beam of seed 000's liver material with its Prony series (5 × 2 × 2 nodes
+// unless given), held at x = 0.
+struct Beam {
+  explicit Beam(int nx = 5, int ny = 2, int nz = 2) {
+    mesh = mesh_gen::BoxGridTets(nx, ny, nz, Vector3d::Zero(), Vector3d(0.06, 0.02, 0.02));
+    fem::FemParameters p;
+    p.kind = fem::FemKind::kHyperelastic;
+    p.hyperelastic = fem::LiverNava2008();
+    p.prony = fem::LiverNava2008Prony();
+    p.density = 1055.0;
+    model = fem::FemModel::FromTetMesh(mesh, p);
+    for (int32_t i = 0; i < model->num_nodes(); ++i) {
+      if (mesh.vertices(0, i) < 1e-9) {
+        fixed.push_back(i);
+      } else {
+        free.push_back(i);
+      }
+    }
+  }
+  int32_t Node(double x, double y, double z) const {
+    for (int32_t i = 0; i < model->num_nodes(); ++i) {
+      if ((mesh.vertices.col(i) - Vector3d(x, y, z)).norm() < 1e-9) return i;
+    }
+    return -1;
+  }
+  // Unit vectors of every free DOF: the complete basis.
+  Eigen::MatrixXd CompleteBasis() const {
+    Eigen::MatrixXd b = Eigen::MatrixXd::Zero(3 * model->num_nodes(), 3 * free.size());
+    for (size_t k = 0; k < free.size(); ++k) {
+      for (int a = 0; a < 3; ++a) b(3 * free[k] + a, static_cast<Eigen::Index>(3 * k + a)) = 1.0;
+    }
+    return b;
+  }
+  NonlinearModelData Data(const Eigen::MatrixXd& modes) const {
+    NonlinearModelData d;
+    d.rest = mesh.vertices;
+    d.masses = model->masses();
+    d.modes = modes;
+    d.tets = mesh.tetrahedra;
+    d.weights.assign(static_cast<size_t>(model->num_tets()), 1.0);
+    d.material = model->material();
+    d.prony = model->prony();
+    d.newton_tolerance = 1e-11;
+    return d;
+  }
+  mesh::TetMesh mesh;
+  std::unique_ptr<fem::FemModel> model;
+  std::vector<int32_t> fixed, free;
+};
+
+TEST(NonlinearReducedModel, WithACompleteBasisIsTheFullViscoelasticQuasiStaticSolution) {
+  const Beam beam;
+  auto reduced = NonlinearReducedModel::Create(beam.Data(beam.CompleteBasis()));
+  const int32_t tip = beam.Node(0.06, 0.02, 0.02);
+  ASSERT_GE(tip, 0);
+  mesh::Points forces = mesh::Points::Zero(3, beam.model->num_nodes());
+  fem::StaticLoads loads;
+  loads.external_forces = &forces;
+  loads.fixed_nodes = beam.fixed;
+  loads.tolerance = 1e-11;
+  auto full_state = beam.model->MakeState();
+  auto state = reduced->MakeState();
+  StepInputs inputs;
+  inputs.dt = 0.25;
+  inputs.external_forces = &forces;
+  // Press 0.5 s, hold 1 s, release: large strain (the tip moves ~1 cm) and relaxation both ways.
+  for (int s = 1; s <= 12; ++s) {
+    const double t = 0.25 * s;
+    const double scale = t <= 0.5 ? t / 0.5 : (t <= 1.5 ? 1.0 : 0.0);
+    forces.col(tip) = scale * Vector3d(0.0, 0.02, -0.06);
+    ASSERT_TRUE(beam.model->SolveQuasiStatic(loads, 0.25, full_state.get()).converged);
+    ASSERT_EQ(reduced->Step(inputs, state.get()), StepStatus::kOk) << "step " << s;
+    const mesh::Points u = full_state->positions - beam.mesh.vertices;
+    const mesh::Points v = state->positions - beam.mesh.vertices;
+    EXPECT_LE((u - v).norm(), 1e-6 * u.norm() + 1e-12) << "step " << s;
+    if (s == 3) {
+      EXPECT_GT(u.col(tip).norm(), 5e-3);  // nonlinear range
+    }
+  }
+}
+
+TEST(NonlinearReducedModel, ForcesAreTheEnergyGradientAndTheTangentTheirDerivative) {
+  const Beam beam;
+  // A basis of 6 POD-like directions: random combinations of free DOFs.
+  std::mt19937 rng(7);
+  std::normal_distribution<double> normal;
+  Eigen::MatrixXd modes = Eigen::MatrixXd::Zero(3 * beam.model->num_nodes(), 6);
+  for (const int32_t i : beam.free) {
+    for (int a = 0; a < 3; ++a) {
+      for (Eigen::Index j = 0; j < 6; ++j) modes(3 * i + a, j) = 1e-2 * normal(rng);
+    }
+  }
+  NonlinearModelData data = beam.Data(modes);
+  for (size_t e = 0; e < data.weights.size(); ++e)
+    data.weights[e] = 0.5 + 0.1 * static_cast<double>(e % 7);
+  auto model = NonlinearReducedModel::Create(data);
+  auto state = model->MakeState();
+  // Load history so that the Prony variables are not zero.
+  mesh::Points forces = mesh::Points::Zero(3, beam.model->num_nodes());
+  forces.col(beam.Node(0.06, 0.0, 0.02)) = Vector3d(0.01, 0.0, -0.04);
+  StepInputs inputs;
+  inputs.dt = 0.1;
+  inputs.external_forces = &forces;
+  for (int s = 0; s < 3; ++s) ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  const Eigen::VectorXd xi = model->Coordinates(*state) * 1.3;
+  for (const double dt : {0.0, 0.1}) {
+    Eigen::VectorXd force;
+    Eigen::MatrixXd tangent;
+    model->ReducedForces(*state, xi, dt, &force, &tangent);
+    const double h = 1e-6;
+    for (Eigen::Index j = 0; j < xi.size(); ++j) {
+      Eigen::VectorXd plus = xi, minus = xi, fp, fm;
+      plus(j) += h;
+      minus(j) -= h;
+      model->ReducedForces(*state, plus, dt, &fp, nullptr);
+      model->ReducedForces(*state, minus, dt, &fm, nullptr);
+      const Eigen::VectorXd fd = -(fp - fm) / (2 * h);
+      EXPECT_LE((fd - tangent.col(j)).norm(), 1e-6 * tangent.norm()) << "dt " << dt << " col " << j;
+    }
+    if (dt == 0.0) {  // f = −∂E/∂ξ (the elastic energy)
+      for (Eigen::Index j = 0; j < xi.size(); ++j) {
+        const auto energy = [&](double d) {
+          Eigen::VectorXd x = xi;
+          x(j) += d;
+          return model->ElasticEnergyAt(x);
+        };
+        const double fd = -(energy(h) - energy(-h)) / (2 * h);
+        EXPECT_NEAR(fd, force(j), 1e-6 * force.norm()) << "component " << j;
+      }
+    }
+  }
+  // The tangent is symmetric (hyperelastic, symmetric Prony offsets).
+  Eigen::VectorXd force;
+  Eigen::MatrixXd tangent;
+  model->ReducedForces(*state, xi, 0.1, &force, &tangent);
+  EXPECT_LE((tangent - tangent.transpose()).norm(), 1e-9 * tangent.norm());
+}
+
+TEST(Ecsw, NnlsFindsAKnownSparseNonNegativeSolution) {
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> uniform(-1.0, 1.0);
+  Eigen::MatrixXd g(60, 200);
+  for (Eigen::Index i = 0; i < g.rows(); ++i) {
+    for (Eigen::Index j = 0; j < g.cols(); ++j) g(i, j) = uniform(rng);
+  }
+  Eigen::VectorXd truth = Eigen::VectorXd::Zero(200);
+  truth(5) = 2.0;
+  truth(17) = 0.5;
+  truth(90) = 1.5;
+  truth(150) = 3.0;
+  const Eigen::VectorXd b = g * truth;
+  const NnlsResult r = SparseNnls(g, b, 1e-10, 100);
+  EXPECT_TRUE(r.converged);
+  EXPECT_LE(r.relative_residual, 1e-10);
+  ASSERT_EQ(r.columns, (std::vector<int32_t>{5, 17, 90, 150}));
+  for (size_t k = 0; k < 4; ++k) EXPECT_NEAR(r.weights[k], truth(r.columns[k]), 1e-8);
+  // A target outside the cone of positive columns: the best non-negative fit, every weight > 0,
+  // not converged.
+  const Eigen::MatrixXd positive = g.cwiseAbs();
+  const NnlsResult cone = SparseNnls(positive, -(positive * truth), 1e-10, 100);
+  EXPECT_FALSE(cone.converged);
+  for (const double w : cone.weights) EXPECT_GT(w, 0.0);
+  EXPECT_THROW(SparseNnls(g, Eigen::VectorXd::Zero(59), 1e-3, 10), std::invalid_argument);
+  Eigen::MatrixXd bad = g;
+  bad(3, 3) = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_THROW(SparseNnls(bad, b, 1e-3, 10), std::invalid_argument);
+  EXPECT_THROW(SparseNnls(g, b, 0.0, 10), std::invalid_argument);
+  EXPECT_THROW(SparseNnls(g, b, 1e-3, 0), std::invalid_argument);
+}
+
+// Training snapshots: static equilibria of the beam under point loads at the tip nodes.
+struct Trained {
+  explicit Trained(const Beam& beam) {
+    auto st = beam.model->MakeState();
+    fem::StaticLoads loads;
+    mesh::Points forces = mesh::Points::Zero(3, beam.model->num_nodes());
+    loads.external_forces = &forces;
+    loads.fixed_nodes = beam.fixed;
+    loads.load_steps = 2;
+    for (const double y : {0.0, 0.02}) {
+      for (const double z : {0.0, 0.02}) {
+        for (const Vector3d& f : {Vector3d(0, 0, -0.08), Vector3d(0, 0.06, 0), Vector3d(0.1, 0, 0),
+                                  Vector3d(0, 0, -0.02)}) {
+          forces.setZero();
+          forces.col(beam.Node(0.06, y, z)) = f;
+          auto s = beam.model->MakeState();
+          EXPECT_TRUE(beam.model->SolveStatic(loads, s.get()).converged);
+          snapshots.push_back(s->positions - beam.mesh.vertices);
+        }
+      }
+    }
+    Eigen::MatrixXd q(3 * beam.model->num_nodes(), static_cast<Eigen::Index>(snapshots.size()));
+    for (size_t k = 0; k < snapshots.size(); ++k) {
+      q.col(static_cast<Eigen::Index>(k)) =
+          Eigen::Map<const Eigen::VectorXd>(snapshots[k].data(), snapshots[k].size());
+    }
+    PodSettings pod;
+    pod.energy_fraction = 1.0;
+    pod.max_modes = 10;
+    modes = ModesOfSnapshots(q, pod).modes;
+  }
+  std::vector<mesh::Points> snapshots;
+  Eigen::MatrixXd modes;
+};
+
+TEST(Ecsw, TrainedCubatureReproducesTheReducedForcesOfAllElementsWithFewOfThem) {
+  const Beam beam(9, 3, 3);  // 192 elements
+  const Trained trained(beam);
+  CubatureSettings settings;
+  settings.tolerance = 1e-2;
+  const Cubature cubature = TrainCubature(*beam.model, trained.modes, trained.snapshots, settings);
+  EXPECT_TRUE(cubature.converged);
+  EXPECT_LE(cubature.relative_residual, 1e-2);
+  EXPECT_EQ(cubature.snapshots, 16);
+  EXPECT_LT(cubature.elements.size(), static_cast<size_t>(beam.model->num_tets()) / 3);
+  // Reduced models with all elements and with the cubature, at held-out states (a mix of the
+  // training projections, scaled), with a Prony history.
+  NonlinearModelData all = beam.Data(trained.modes);
+  NonlinearModelData sampled = all;
+  sampled.tets.resize(4, static_cast<Eigen::Index>(cubature.elements.size()));
+  for (size_t k = 0; k < cubature.elements.size(); ++k) {
+    sampled.tets.col(static_cast<Eigen::Index>(k)) = beam.mesh.tetrahedra.col(cubature.elements[k]);
+  }
+  sampled.weights = cubature.weights;
+  sampled.elements = cubature.elements;
+  auto full_reduced = NonlinearReducedModel::Create(all);
+  auto ecsw = NonlinearReducedModel::Create(sampled);
+  auto s1 = full_reduced->MakeState();
+  auto s2 = ecsw->MakeState();
+  for (const double mix : {0.3, 0.7}) {
+    const mesh::Points u = mix * trained.snapshots[1] + (1.0 - mix) * 0.8 * trained.snapshots[6];
+    const Eigen::VectorXd xi =
+        trained.modes.transpose() * Eigen::Map<const Eigen::VectorXd>(u.data(), u.size());
+    Eigen::VectorXd f1, f2;
+    Eigen::MatrixXd k1, k2;
+    full_reduced->ReducedForces(*s1, xi, 0.0, &f1, &k1);
+    ecsw->ReducedForces(*s2, xi, 0.0, &f2, &k2);
+    EXPECT_LE((f1 - f2).norm(), 2e-2 * f1.norm()) << "mix " << mix;
+    EXPECT_LE((k1 - k2).norm(), 5e-2 * k1.norm()) << "mix " << mix;
+  }
+  // Quasi-static solutions of the two under a held-out load agree closely.
+  mesh::Points forces = mesh::Points::Zero(3, beam.model->num_nodes());
+  forces.col(beam.Node(0.06, 0.0, 0.02)) = Vector3d(0.01, 0.03, -0.05);
+  StepInputs inputs;
+  inputs.dt = 0.25;
+  inputs.external_forces = &forces;
+  for (int s = 0; s < 4; ++s) {
+    ASSERT_EQ(full_reduced->Step(inputs, s1.get()), StepStatus::kOk);
+    ASSERT_EQ(ecsw->Step(inputs, s2.get()), StepStatus::kOk);
+  }
+  const mesh::Points u1 = s1->positions - beam.mesh.vertices;
+  const mesh::Points u2 = s2->positions - beam.mesh.vertices;
+  EXPECT_LE((u1 - u2).norm(), 2e-2 * u1.norm());
+  // A linear model's cubature is refused.
+  fem::FemParameters linear;
+  linear.kind = fem::FemKind::kLinear;
+  linear.youngs_modulus = 5000.0;
+  auto other = fem::FemModel::FromTetMesh(beam.mesh, linear);
+  EXPECT_THROW(TrainCubature(*other, trained.modes, trained.snapshots, settings),
+               std::invalid_argument);
+}
+
+TEST(NonlinearReducedModel, GraspsPullTheirNodesAndLocalStiffnessIsTheCondensedTangent) {
+  const Beam beam;
+  auto model = NonlinearReducedModel::Create(beam.Data(beam.CompleteBasis()));
+  auto state = model->MakeState();
+  const int32_t tip = beam.Node(0.06, 0.02, 0.02);
+  Attachment grasp;
+  grasp.node = tip;
+  grasp.target = beam.mesh.vertices.col(tip) + Vector3d(0.0, 0.0, 0.004);
+  grasp.stiffness = 50.0;
+  StepInputs inputs;
+  inputs.dt = 0.01;
+  inputs.attachments = std::span<const Attachment>(&grasp, 1);
+  ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  const double lift = state->positions(2, tip) - beam.mesh.vertices(2, tip);
+  EXPECT_GT(lift, 1e-4);
+  EXPECT_LT(lift, 0.004);
+  // With the complete basis the condensed stiffness is the full tangent's Schur complement:
+  // check K_local f = displacement of a small extra force (linear response at the state).
+  inputs.attachments = {};
+  inputs.dt = 1e-7;  // QLV's instantaneous response (g = 1), which LocalStiffness gives
+  auto rest = model->MakeState();
+  const Eigen::Matrix3d k = model->LocalStiffness(*rest, tip);
+  EXPECT_LE((k - k.transpose()).norm(), 1e-9 * k.norm());
+  mesh::Points forces = mesh::Points::Zero(3, beam.model->num_nodes());
+  forces.col(tip) = Vector3d(0.0, 1e-5, -2e-5);
+  inputs.external_forces = &forces;
+  ASSERT_EQ(model->Step(inputs, rest.get()), StepStatus::kOk);
+  const Vector3d du = rest->positions.col(tip) - beam.mesh.vertices.col(tip);
+  EXPECT_LE((k * du - forces.col(tip)).norm(), 1e-3 * forces.col(tip).norm());
+}
+
+TEST(NonlinearReducedModel, StepsAllocateNothing) {
+  const Beam beam;
+  const Trained trained(beam);
+  NonlinearModelData data = beam.Data(trained.modes);
+  data.newton_tolerance = 1e-8;
+  auto model = NonlinearReducedModel::Create(data);
+  auto state = model->MakeState();
+  mesh::Points forces = mesh::Points::Zero(3, beam.model->num_nodes());
+  const int32_t tip = beam.Node(0.06, 0.02, 0.02);
+  Attachment grasp;
+  grasp.node = beam.Node(0.06, 0.0, 0.0);
+  grasp.target = beam.mesh.vertices.col(grasp.node) + Vector3d(0.0, 0.002, 0.0);
+  grasp.stiffness = 30.0;
+  StepInputs inputs;
+  inputs.dt = 1e-3;
+  inputs.gravity = Vector3d(0, 0, -9.81);
+  inputs.external_forces = &forces;
+  ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);  // warm-up
+  testing::AllocationCounter counter;
+  for (int s = 0; s < 20; ++s) {
+    forces.col(tip) = Vector3d(0.0, 0.0, -0.003 * s);
+    inputs.attachments =
+        s % 2 == 0 ? std::span<const Attachment>(&grasp, 1) : std::span<const Attachment>();
+    ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+    (void)model->LocalStiffness(*state, tip);
+  }
+  EXPECT_EQ(counter.count(), 0);
+}
+
+TEST(NonlinearReducedModel, ALoadTooLargeToBalanceStopsUnconvergedWithoutInvertingAnElement) {
+  const Beam beam;
+  auto model = NonlinearReducedModel::Create(beam.Data(beam.CompleteBasis()));
+  auto state = model->MakeState();
+  mesh::Points forces = mesh::Points::Zero(3, beam.model->num_nodes());
+  const int32_t tip = beam.Node(0.06, 0.02, 0.02);
+  forces.col(tip) = Vector3d(0.0, 0.0, -0.02);
+  StepInputs inputs;
+  inputs.dt = 0.25;
+  inputs.external_forces = &forces;
+  ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  EXPECT_EQ(state->counters.solver_unconverged, 0);
+  forces.col(tip) = Vector3d(0.0, 0.0, -1e4);  // would crush the tip's elements
+  EXPECT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  EXPECT_EQ(state->counters.solver_unconverged, 1);
+  EXPECT_TRUE(state->positions.allFinite());
+  EXPECT_TRUE(std::isfinite(model->ElasticEnergyAt(model->Coordinates(*state))));
+  // Back to a load it can carry: converged again.
+  forces.col(tip) = Vector3d(0.0, 0.0, -0.02);
+  EXPECT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  EXPECT_EQ(state->counters.solver_unconverged, 1);
+}
+
+TEST(NonlinearReducedModel, RefusesBadDataByName) {
+  const Beam beam;
+  const NonlinearModelData good = beam.Data(beam.CompleteBasis());
+  const auto refused = [&](const std::function<void(NonlinearModelData*)>& edit,
+                           const std::string& what) {
+    NonlinearModelData d = good;
+    edit(&d);
+    try {
+      NonlinearReducedModel::Create(d);
+      ADD_FAILURE() << "accepted: " << what;
+    } catch (const std::invalid_argument& error) {
+      EXPECT_NE(std::string(error.what()).find(what), std::string::npos) << error.what();
+    }
+  };
+  refused([](NonlinearModelData* d) { d->weights.pop_back(); }, "weights");
+  refused([](NonlinearModelData* d) { d->weights[2] = std::nan(""); }, "weight");
+  refused([](NonlinearModelData* d) { d->weights[0] = 0.0; }, "weight");
+  refused([](NonlinearModelData* d) { d->tets(1, 3) = 999; }, "corner 999 out of range");
+  refused([](NonlinearModelData* d) { std::swap(d->tets(0, 1), d->tets(1, 1)); },
+          "sampled elements");
+  refused([](NonlinearModelData* d) { d->modes(4, 0) = std::nan(""); }, "mode");
+  refused([](NonlinearModelData* d) { d->masses.resize(3); }, "masses");
+  refused([](NonlinearModelData* d) { d->material.c[0] = -1.0; }, "material");
+  refused([](NonlinearModelData* d) { d->prony = {{0.7, 1.0}, {0.6, 2.0}}; }, "gammas");
+  refused([](NonlinearModelData* d) { d->elements = {1, 2}; }, "elements");
+  refused([](NonlinearModelData* d) { d->newton_tolerance = 0.0; }, "newton_tolerance");
+}
+
+}  // namespace
+}  // namespace somasim::models::reduced
