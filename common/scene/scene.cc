@@ -414,6 +414,19 @@ void CheckScene(const Where& s, const Scene& scene) {
     }
     if (r.max_modes() < 0) w.Fail("max_modes", "must be >= 0");
     w.NonNegative("creep_radius", r.creep_radius());
+    if (r.nonlinear_max_modes() < 0) w.Fail("nonlinear_max_modes", "must be >= 0");
+    if (!(r.cubature_tolerance() >= 0.0 && r.cubature_tolerance() < 1.0)) {
+      w.Fail("cubature_tolerance", "must lie in [0, 1) (0: the default 0.01)");
+    }
+    if (r.nonlinear_tilts() < 0) w.Fail("nonlinear_tilts", "must be >= 0");
+    if (!(r.nonlinear_tilt_deg() >= 0.0 && r.nonlinear_tilt_deg() < 90.0)) {
+      w.Fail("nonlinear_tilt_deg", "must lie in [0, 90) (0: the default 35)");
+    }
+    for (int i = 0; i < r.nonlinear_force_size(); ++i) {
+      if (!(r.nonlinear_force(i) > 0.0) || !std::isfinite(r.nonlinear_force(i))) {
+        w.Fail("nonlinear_force", "must be a finite value > 0", i);
+      }
+    }
   }
   const Output& output = scene.output();
   for (int k = 0; k < output.time_size(); ++k) {

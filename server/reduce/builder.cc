@@ -1,5 +1,6 @@
 #include "server/reduce/builder.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -226,41 +227,96 @@ NonlinearBuildReport BuildNonlinearModel(
       columns.emplace_back(Eigen::Map<const Eigen::VectorXd>(u.data(), u.size()) / norm);
   };
   for (const mesh::Points& u : kl.training) add(u);
-  // The region nodes' responses to 1 mN (linear: the tangent at rest, factorised once).
+  std::vector<mesh::Points> states = kl.training;  // the cubature's candidates
+  NonlinearBuildReport out;
+  // The magnitudes of the region samples.
+  std::vector<double> magnitudes = plan.nonlinear_forces;
+  if (magnitudes.empty()) {
+    magnitudes = plan.forces;
+    double gamma_sum = 0.0;
+    for (const models::fem::PronyTerm& t : full.prony()) gamma_sum += t.gamma;
+    const double largest = *std::max_element(plan.forces.begin(), plan.forces.end());
+    if (gamma_sum > 0.0 && gamma_sum < 1.0) magnitudes.push_back(largest / (1.0 - gamma_sum));
+  }
+  std::sort(magnitudes.begin(), magnitudes.end());
+  for (const double f : magnitudes) Require(std::isfinite(f) && f > 0.0, "a magnitude is not > 0");
+  Require(plan.tilts >= 0 && std::isfinite(plan.tilt_deg) && plan.tilt_deg >= 0.0 &&
+              plan.tilt_deg < 90.0,
+          "tilts must be >= 0 and tilt_deg in [0, 90)");
+  // Every region node: its responses to 1 mN along the normal and two tangents (linear: the
+  // tangent at rest, factorised once), then its static samples, each direction's magnitudes in
+  // ascending order from the last one's solution (continuation).
   StaticWorkspace workspace;
   size_t done = 0;
+  const double tilt = plan.tilt_deg * 3.14159265358979323846 / 180.0;
   for (const int32_t r : plan.region_nodes) {
     Require(r >= 0 && r < nodes, "region node " + std::to_string(r) + " out of range");
     ++done;
     if (held.count(r) != 0 || normals.col(r).squaredNorm() < 0.5) continue;
     const Eigen::Vector3d inward = -Eigen::Vector3d(normals.col(r));
     const auto [t1, t2] = Tangents(inward);
+    mesh::Points forces = mesh::Points::Zero(3, nodes);
+    StaticLoads loads;
+    loads.external_forces = &forces;
+    loads.fixed_nodes = plan.fixed;
+    loads.reuse_factorisation = true;
     for (const Eigen::Vector3d& d : {inward, t1, t2}) {
-      mesh::Points forces = mesh::Points::Zero(3, nodes);
       forces.col(r) = 1e-3 * d;
-      StaticLoads loads;
-      loads.external_forces = &forces;
-      loads.fixed_nodes = plan.fixed;
-      loads.reuse_factorisation = true;
       auto state = full.MakeState();
       if (full.SolveStatic(loads, state.get(), &workspace).converged) {
         add(state->positions - full.rest_positions());
       }
     }
-    report("region responses", done, plan.region_nodes.size());
+    std::vector<Eigen::Vector3d> directions{inward};
+    for (int k = 0; k < plan.tilts; ++k) {
+      const double azimuth = 2.0 * 3.14159265358979323846 * k / plan.tilts;
+      directions.push_back(std::cos(tilt) * inward +
+                           std::sin(tilt) * (std::cos(azimuth) * t1 + std::sin(azimuth) * t2));
+    }
+    StaticLoads samples = loads;
+    samples.reuse_factorisation = false;
+    samples.load_steps = plan.load_steps;
+    StaticWorkspace sample_workspace;
+    for (const Eigen::Vector3d& d : directions) {
+      auto state = full.MakeState();
+      for (const double f : magnitudes) {
+        forces.col(r) = f * d;
+        if (!full.SolveStatic(samples, state.get(), &sample_workspace).converged) {
+          ++out.unconverged;
+          break;  // the larger magnitudes would start from an unconverged state
+        }
+        const mesh::Points u = state->positions - full.rest_positions();
+        add(u);
+        states.push_back(u);
+        ++out.region_solves;
+      }
+    }
+    report("region samples", done, plan.region_nodes.size());
   }
-  NonlinearBuildReport out;
   report("modes", 0, 1);
   Eigen::MatrixXd q(3 * static_cast<Eigen::Index>(nodes),
                     static_cast<Eigen::Index>(columns.size()));
   for (size_t c = 0; c < columns.size(); ++c) q.col(static_cast<Eigen::Index>(c)) = columns[c];
   out.snapshots = columns.size();
-  models::reduced::PodModes pod = models::reduced::ModesOfSnapshots(q, plan.pod);
+  // POD in the energy inner product of the tangent at rest (pod.h: a Galerkin model is as good
+  // as its basis in the energy norm).
+  models::fem::BlockSparseMatrix tangent;
+  full.AssembleTangent(full.rest_positions(), &tangent);
+  Eigen::MatrixXd weighted(q.rows(), q.cols());
+  for (Eigen::Index c = 0; c < q.cols(); ++c) {
+    tangent.Multiply(q.col(c).data(), weighted.col(c).data(), nullptr);
+  }
+  models::reduced::PodModes pod =
+      models::reduced::ModesOfSnapshots(q, plan.nonlinear_pod, &weighted);
   out.eigenvalues = pod.eigenvalues;
   out.kept_fraction = pod.kept_fraction;
   report("modes", 1, 1);
   report("cubature", 0, 1);
-  out.cubature = models::reduced::TrainCubature(full, pod.modes, kl.training, plan.cubature);
+  // The cubature's training: at most max_cubature_states states, evenly spread over the list.
+  std::vector<mesh::Points> training;
+  const size_t take = std::min(states.size(), std::max<size_t>(plan.max_cubature_states, 1));
+  for (size_t k = 0; k < take; ++k) training.push_back(states[k * states.size() / take]);
+  out.cubature = models::reduced::TrainCubature(full, pod.modes, training, plan.cubature);
   report("cubature", 1, 1);
   models::reduced::NonlinearModelData& d = out.data;
   d.rest = full.rest_positions();

@@ -44,7 +44,17 @@ struct SamplingPlan {
   // rest) join the snapshots, so that a touch anywhere in the regions is in the basis; and the
   // cubature's settings.
   std::vector<int32_t> region_nodes;
+  models::reduced::PodSettings nonlinear_pod;  // its own energy criterion and number of modes
   models::reduced::CubatureSettings cubature;
+  // Static samples at every region node: the inward normal and `tilts` directions tilted from it
+  // by tilt_deg, each at the magnitudes nonlinear_forces (ascending; empty: `forces` and the
+  // largest of them over γ∞, the material's long-term share, where QLV creep under it ends).
+  int tilts = 4;
+  double tilt_deg = 35.0;
+  std::vector<double> nonlinear_forces;
+  // At most this many training states for the cubature (evenly chosen: its least squares has
+  // n × states rows).
+  size_t max_cubature_states = 200;
 };
 
 struct BuildProgress {
@@ -72,7 +82,9 @@ struct NonlinearBuildReport {
   models::reduced::NonlinearModelData data;
   Eigen::VectorXd eigenvalues;  // of the normalised snapshots' QᵀQ, descending
   double kept_fraction = 0.0;
-  size_t snapshots = 0;  // columns of Q (training states and region responses)
+  size_t snapshots = 0;      // columns of Q (training states and region responses)
+  size_t region_solves = 0;  // static samples at the region nodes (converged)
+  int unconverged = 0;       // region samples that did not converge (left out)
   models::reduced::Cubature cubature;
   double seconds = 0.0;  // wall time of this part of the build
 };
@@ -84,10 +96,11 @@ BuildReport BuildKlModel(const models::fem::FemModel& full, const mesh::TetMesh&
                          const std::function<void(const BuildProgress&)>& progress = {});
 
 // The nonlinear reduced model (nonlinear_model.h) from the same plan and the KL build's training
-// states: modes by POD of the training states and of the region nodes' small-load responses,
-// each normalised to unit length (a 0.1 N state counts as much as a 1 N one), with the plan's
-// energy criterion; then the ECSW cubature trained on the training states. Throws
-// std::invalid_argument for a model that is not hyperelastic or a region node out of range.
+// states: modes by POD, in the energy inner product of the tangent at rest, of the training
+// states, the region nodes' small-load (linear) responses and their static samples (tilts,
+// nonlinear_forces), each normalised to unit length (a 0.1 N state counts as much as a 1 N
+// one), with the plan's nonlinear_pod criterion; then the ECSW cubature trained on the states.
+// Throws std::invalid_argument for a model that is not hyperelastic or a region node out of range.
 NonlinearBuildReport BuildNonlinearModel(
     const models::fem::FemModel& full, const mesh::TetMesh& mesh, const SamplingPlan& plan,
     const BuildReport& kl, const std::function<void(const BuildProgress&)>& progress = {});

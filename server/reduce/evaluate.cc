@@ -1,6 +1,7 @@
 #include "server/reduce/evaluate.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <set>
 #include <stdexcept>
@@ -51,8 +52,9 @@ void CheckPlan(const reduced::EvaluationPlan& plan, int32_t num_nodes,
 
 std::vector<CaseResult> Evaluate(const models::fem::FemModel& full,
                                  const std::vector<int32_t>& fixed,
-                                 const models::reduced::KlReducedModel& reduced,
-                                 const reduced::EvaluationPlan& plan) {
+                                 const models::TissueModel& reduced,
+                                 const reduced::EvaluationPlan& plan,
+                                 const Eigen::MatrixXd* modes) {
   CheckPlan(plan, full.num_nodes(), fixed);
   if (reduced.num_nodes() != full.num_nodes()) {
     throw std::invalid_argument("evaluate: the reduced model is not on the full model's mesh");
@@ -76,19 +78,27 @@ std::vector<CaseResult> Evaluate(const models::fem::FemModel& full,
     inputs.dt = c.dt();
     inputs.external_forces = &forces;
     inputs.fixed_nodes = fixed;
-    double error = 0.0, norm = 0.0, node_error = 0.0, node_norm = 0.0;
+    double error = 0.0, norm = 0.0, node_error = 0.0, node_norm = 0.0, floor = 0.0;
+    double step_seconds = 0.0;
     const auto steps = static_cast<int>(std::llround(c.end_time() / c.dt()));
     for (int s = 1; s <= steps; ++s) {
       const double t = c.dt() * s;
       forces.col(c.node()) = CaseScale(c, t) * force;
       r.converged = full.SolveQuasiStatic(loads, c.dt(), full_state.get(), &workspace).converged &&
                     r.converged;
+      const auto before = std::chrono::steady_clock::now();
       if (reduced.Step(inputs, reduced_state.get()) != models::StepStatus::kOk) {
         r.converged = false;
       }
+      step_seconds +=
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - before).count();
       const mesh::Points u = full_state->positions - rest;
       const mesh::Points v = reduced_state->positions - rest;
       error += (u - v).squaredNorm();
+      if (modes != nullptr) {
+        const Eigen::Map<const Eigen::VectorXd> flat(u.data(), u.size());
+        floor += (flat - *modes * (modes->transpose() * flat)).squaredNorm();
+      }
       norm += u.squaredNorm();
       node_error += (u.col(c.node()) - v.col(c.node())).squaredNorm();
       node_norm += u.col(c.node()).squaredNorm();
@@ -96,8 +106,10 @@ std::vector<CaseResult> Evaluate(const models::fem::FemModel& full,
       r.reduced_end_m = v.col(c.node()).norm();
     }
     r.steps = steps;
+    r.reduced_step_us = steps > 0 ? 1e6 * step_seconds / steps : 0.0;
     r.field_error = norm > 0.0 ? std::sqrt(error / norm) : 0.0;
     r.node_error = node_norm > 0.0 ? std::sqrt(node_error / node_norm) : 0.0;
+    if (modes != nullptr) r.basis_error = norm > 0.0 ? std::sqrt(floor / norm) : 0.0;
     results.push_back(r);
   }
   return results;

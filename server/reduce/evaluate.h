@@ -26,6 +26,11 @@ struct CaseResult {
   double reduced_end_m = 0.0;  // |û| there [m]
   int steps = 0;
   bool converged = true;  // every full step converged
+  // The basis's floor: the field error of the full solution's orthogonal projection onto the
+  // modes (B Bᵀ u, orthonormal B), which no model on these modes can beat by much; -1 when no
+  // modes were given.
+  double basis_error = -1.0;
+  double reduced_step_us = 0.0;  // the reduced model's mean step (wall time) [µs]
 };
 
 // The force scale of `c` at time t (piecewise linear; 1 without a history).
@@ -37,9 +42,12 @@ double CaseScale(const reduced::EvaluationCase& c, double t);
 void CheckPlan(const reduced::EvaluationPlan& plan, int32_t num_nodes,
                const std::vector<int32_t>& fixed);
 
+// `reduced`: any model on the full model's mesh (seed 000's KlReducedModel, the
+// NonlinearReducedModel); `modes` (3N × n, orthonormal), if given, for the basis's floor.
 std::vector<CaseResult> Evaluate(const models::fem::FemModel& full,
                                  const std::vector<int32_t>& fixed,
-                                 const models::reduced::KlReducedModel& reduced,
-                                 const reduced::EvaluationPlan& plan);
+                                 const models::TissueModel& reduced,
+                                 const reduced::EvaluationPlan& plan,
+                                 const Eigen::MatrixXd* modes = nullptr);
 
 }  // namespace somasim::reduce

@@ -5,6 +5,7 @@
 
 #include <bit>
 #include <cerrno>
+#include <cmath>
 #include <cstring>
 #include <fstream>
 #include <sstream>
@@ -44,41 +45,7 @@ struct Array {
   size_t rows, cols;
 };
 
-}  // namespace
-
-std::string MeshHash(const mesh::TetMesh& mesh) {
-  std::string bytes(reinterpret_cast<const char*>(mesh.vertices.data()),
-                    sizeof(double) * static_cast<size_t>(mesh.vertices.size()));
-  bytes.append(reinterpret_cast<const char*>(mesh.tetrahedra.data()),
-               sizeof(int32_t) * static_cast<size_t>(mesh.tetrahedra.size()));
-  return recording::TextHash(bytes);
-}
-
-std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata, const KlModelData& data) {
-  std::vector<double> creep;
-  metadata.clear_creep();
-  for (const CreepCurve& c : data.creep) {
-    reduced::CreepCurveInfo* info = metadata.add_creep();
-    info->set_node(c.node);
-    info->set_interval_s(c.interval);
-    info->set_samples(c.multiplier.size());
-    creep.insert(creep.end(), c.multiplier.begin(), c.multiplier.end());
-  }
-  metadata.set_creep_radius_m(data.creep_radius);
-  metadata.set_penalty_stiffness(data.penalty_stiffness);
-  metadata.set_max_local_stiffness(data.max_local_stiffness);
-  const std::vector<Array> arrays = {
-      {"rest", data.rest.data(), 3, static_cast<size_t>(data.rest.cols())},
-      {"masses", data.masses.data(), data.masses.size(), 1},
-      {"modes", data.modes.data(), static_cast<size_t>(data.modes.rows()),
-       static_cast<size_t>(data.modes.cols())},
-      {"stiffness_modes", data.stiffness_modes.data(),
-       static_cast<size_t>(data.stiffness_modes.rows()),
-       static_cast<size_t>(data.stiffness_modes.cols())},
-      {"reduced_stiffness", data.reduced_stiffness.data(),
-       static_cast<size_t>(data.reduced_stiffness.rows()),
-       static_cast<size_t>(data.reduced_stiffness.cols())},
-      {"creep", creep.data(), creep.size(), 1}};
+std::string EncodeArrays(reduced::ReducedModelMetadata metadata, const std::vector<Array>& arrays) {
   metadata.clear_arrays();
   std::string body;
   for (const Array& a : arrays) {
@@ -102,9 +69,7 @@ std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata, const KlM
   return out;
 }
 
-void WriteReducedModel(const std::string& path, const reduced::ReducedModelMetadata& metadata,
-                       const KlModelData& data) {
-  const std::string bytes = EncodeReducedModel(metadata, data);
+void WriteBytes(const std::string& path, const std::string& bytes) {
   const int fd = ::open(path.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
   if (fd < 0) {
     throw ReducedFileError("cannot create " + path + ": " + std::strerror(errno) +
@@ -129,6 +94,165 @@ void WriteReducedModel(const std::string& path, const reduced::ReducedModelMetad
     throw ReducedFileError("cannot fsync " + path + ": " + std::strerror(error));
   }
   ::close(fd);
+}
+
+// That the file was made for `mesh` (counts and MeshHash).
+template <typename Fail>
+void CheckMesh(const mesh::TetMesh& mesh, const reduced::ReducedModelMetadata& m,
+               const Fail& fail) {
+  const uint64_t nodes = m.num_nodes();
+  if (static_cast<uint64_t>(mesh.vertices.cols()) != nodes ||
+      static_cast<uint64_t>(mesh.tetrahedra.cols()) != m.num_tets()) {
+    fail("made for a mesh of " + std::to_string(nodes) + " nodes and " +
+         std::to_string(m.num_tets()) + " tetrahedra; the organ's has " +
+         std::to_string(mesh.vertices.cols()) + " and " + std::to_string(mesh.tetrahedra.cols()));
+  }
+  const std::string hash = MeshHash(mesh);
+  if (hash != m.mesh_hash()) {
+    fail("made for another mesh (mesh hash " + m.mesh_hash() + "; the organ's is " + hash + ")");
+  }
+}
+
+// The nonlinear model from checked arrays (rest, masses and modes' shapes already checked).
+template <typename Fail>
+std::unique_ptr<models::reduced::NonlinearReducedModel> DecodeNonlinear(
+    const reduced::ReducedModelMetadata& m, const std::vector<std::vector<double>>& arrays,
+    const Fail& fail) {
+  const auto en = static_cast<Eigen::Index>(m.num_nodes());
+  const auto ek = static_cast<Eigen::Index>(m.arrays(2).cols());
+  const uint64_t elements = m.arrays(3).cols();
+  if (m.arrays(3).rows() != 4 || elements < 1) fail("'tets' is not 4 × m (m >= 1)");
+  if (m.arrays(4).rows() != elements || m.arrays(4).cols() != 1) fail("'weights' is not m × 1");
+  if (m.arrays(5).rows() != elements || m.arrays(5).cols() != 1) fail("'elements' is not m × 1");
+  models::reduced::NonlinearModelData data;
+  data.rest = Eigen::Map<const mesh::Points>(arrays[0].data(), 3, en);
+  data.masses = arrays[1];
+  data.modes = Eigen::Map<const Eigen::MatrixXd>(arrays[2].data(), 3 * en, ek);
+  data.tets.resize(4, static_cast<Eigen::Index>(elements));
+  for (size_t k = 0; k < arrays[3].size(); ++k) {
+    const double v = arrays[3][k];
+    if (!(v >= 0.0 && v < static_cast<double>(en)) || v != std::floor(v)) {
+      fail("'tets' holds " + std::to_string(v) + ", not a node index");
+    }
+    data.tets.data()[k] = static_cast<int32_t>(v);
+  }
+  data.weights = arrays[4];
+  for (const double v : arrays[5]) {
+    if (!(v >= -1.0 && v < 2147483647.0) || v != std::floor(v)) {
+      fail("'elements' holds " + std::to_string(v) + ", not an element index");
+    }
+    if (v >= 0.0) data.elements.push_back(static_cast<int32_t>(v));
+  }
+  if (!data.elements.empty() && data.elements.size() != elements) {
+    fail("'elements' mixes indices and -1");
+  }
+  const reduced::HyperelasticInfo& h = m.hyperelastic();
+  if (h.law() == "reduced_polynomial") {
+    data.material.law = models::fem::HyperelasticLaw::kReducedPolynomial;
+    if (h.c_size() != 5 || h.d_size() != 3) fail("hyperelastic: c needs 5 values and d 3");
+    for (int k = 0; k < 5; ++k) data.material.c[static_cast<size_t>(k)] = h.c(k);
+    for (int k = 0; k < 3; ++k) data.material.d[static_cast<size_t>(k)] = h.d(k);
+  } else if (h.law() == "st_venant_kirchhoff") {
+    data.material.law = models::fem::HyperelasticLaw::kStVenantKirchhoff;
+    data.material.lambda = h.lambda_pa();
+    data.material.mu = h.mu_pa();
+  } else {
+    fail("hyperelastic: unknown law '" + h.law() + "'");
+  }
+  for (const reduced::PronyInfo& p : m.prony()) data.prony.push_back({p.gamma(), p.tau_s()});
+  data.penalty_stiffness = m.penalty_stiffness();
+  data.max_local_stiffness = m.max_local_stiffness();
+  try {
+    return models::reduced::NonlinearReducedModel::Create(std::move(data));
+  } catch (const std::invalid_argument& e) {
+    fail(e.what());
+  }
+  return nullptr;
+}
+
+}  // namespace
+
+std::string MeshHash(const mesh::TetMesh& mesh) {
+  std::string bytes(reinterpret_cast<const char*>(mesh.vertices.data()),
+                    sizeof(double) * static_cast<size_t>(mesh.vertices.size()));
+  bytes.append(reinterpret_cast<const char*>(mesh.tetrahedra.data()),
+               sizeof(int32_t) * static_cast<size_t>(mesh.tetrahedra.size()));
+  return recording::TextHash(bytes);
+}
+
+std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata, const KlModelData& data) {
+  if (metadata.kind().empty()) metadata.set_kind("kl_seed000");
+  std::vector<double> creep;
+  metadata.clear_creep();
+  for (const CreepCurve& c : data.creep) {
+    reduced::CreepCurveInfo* info = metadata.add_creep();
+    info->set_node(c.node);
+    info->set_interval_s(c.interval);
+    info->set_samples(c.multiplier.size());
+    creep.insert(creep.end(), c.multiplier.begin(), c.multiplier.end());
+  }
+  metadata.set_creep_radius_m(data.creep_radius);
+  metadata.set_penalty_stiffness(data.penalty_stiffness);
+  metadata.set_max_local_stiffness(data.max_local_stiffness);
+  const std::vector<Array> arrays = {
+      {"rest", data.rest.data(), 3, static_cast<size_t>(data.rest.cols())},
+      {"masses", data.masses.data(), data.masses.size(), 1},
+      {"modes", data.modes.data(), static_cast<size_t>(data.modes.rows()),
+       static_cast<size_t>(data.modes.cols())},
+      {"stiffness_modes", data.stiffness_modes.data(),
+       static_cast<size_t>(data.stiffness_modes.rows()),
+       static_cast<size_t>(data.stiffness_modes.cols())},
+      {"reduced_stiffness", data.reduced_stiffness.data(),
+       static_cast<size_t>(data.reduced_stiffness.rows()),
+       static_cast<size_t>(data.reduced_stiffness.cols())},
+      {"creep", creep.data(), creep.size(), 1}};
+  return EncodeArrays(std::move(metadata), arrays);
+}
+
+std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata,
+                               const models::reduced::NonlinearModelData& data) {
+  if (metadata.kind().empty() || metadata.kind() == "kl_seed000") {
+    metadata.set_kind("ecsw_nonlinear");
+  }
+  metadata.set_penalty_stiffness(data.penalty_stiffness);
+  metadata.set_max_local_stiffness(data.max_local_stiffness);
+  reduced::HyperelasticInfo* h = metadata.mutable_hyperelastic();
+  h->Clear();
+  h->set_law(data.material.law == models::fem::HyperelasticLaw::kReducedPolynomial
+                 ? "reduced_polynomial"
+                 : "st_venant_kirchhoff");
+  for (const double c : data.material.c) h->add_c(c);
+  for (const double d : data.material.d) h->add_d(d);
+  h->set_lambda_pa(data.material.lambda);
+  h->set_mu_pa(data.material.mu);
+  metadata.clear_prony();
+  for (const models::fem::PronyTerm& t : data.prony) {
+    reduced::PronyInfo* p = metadata.add_prony();
+    p->set_gamma(t.gamma);
+    p->set_tau_s(t.tau);
+  }
+  const std::vector<double> tets(data.tets.data(), data.tets.data() + data.tets.size());
+  std::vector<double> elements(data.elements.begin(), data.elements.end());
+  if (elements.empty()) elements.assign(data.weights.size(), -1.0);
+  const std::vector<Array> arrays = {
+      {"rest", data.rest.data(), 3, static_cast<size_t>(data.rest.cols())},
+      {"masses", data.masses.data(), data.masses.size(), 1},
+      {"modes", data.modes.data(), static_cast<size_t>(data.modes.rows()),
+       static_cast<size_t>(data.modes.cols())},
+      {"tets", tets.data(), 4, static_cast<size_t>(data.tets.cols())},
+      {"weights", data.weights.data(), data.weights.size(), 1},
+      {"elements", elements.data(), elements.size(), 1}};
+  return EncodeArrays(std::move(metadata), arrays);
+}
+
+void WriteReducedModel(const std::string& path, const reduced::ReducedModelMetadata& metadata,
+                       const KlModelData& data) {
+  WriteBytes(path, EncodeReducedModel(metadata, data));
+}
+
+void WriteReducedModel(const std::string& path, const reduced::ReducedModelMetadata& metadata,
+                       const models::reduced::NonlinearModelData& data) {
+  WriteBytes(path, EncodeReducedModel(metadata, data));
 }
 
 LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::string& name,
@@ -161,12 +285,17 @@ LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::strin
     fail("the metadata does not parse");
   }
   const reduced::ReducedModelMetadata& m = out.metadata;
-  if (m.kind() != "kl_seed000") fail("unknown reduced model kind '" + m.kind() + "'");
+  const bool nonlinear = m.kind() == "ecsw_nonlinear";
+  if (m.kind() != "kl_seed000" && !nonlinear) {
+    fail("unknown reduced model kind '" + m.kind() + "'");
+  }
   // The arrays, each checked before it is used.
   size_t at = kPreamble + meta_size;
   std::vector<std::vector<double>> arrays;
-  const std::vector<std::string> names = {
-      "rest", "masses", "modes", "stiffness_modes", "reduced_stiffness", "creep"};
+  const std::vector<std::string> names =
+      nonlinear ? std::vector<std::string>{"rest", "masses", "modes", "tets", "weights", "elements"}
+                : std::vector<std::string>{
+                      "rest", "masses", "modes", "stiffness_modes", "reduced_stiffness", "creep"};
   if (m.arrays_size() != static_cast<int>(names.size())) {
     fail("lists " + std::to_string(m.arrays_size()) + " arrays, not " +
          std::to_string(names.size()));
@@ -207,6 +336,11 @@ LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::strin
     fail("'masses' is not num_nodes × 1");
   }
   if (shape(2).first != 3 * nodes || n < 1) fail("'modes' is not 3 num_nodes × n");
+  if (mesh != nullptr) CheckMesh(*mesh, m, fail);
+  if (nonlinear) {
+    out.nonlinear = DecodeNonlinear(m, arrays, fail);
+    return out;
+  }
   if (shape(3) != shape(2)) fail("'stiffness_modes' does not have the modes' shape");
   if (shape(4) != std::make_pair<uint64_t, uint64_t>(uint64_t{n}, uint64_t{n})) {
     fail("'reduced_stiffness' is not n × n (n = " + std::to_string(n) + ")");
@@ -216,19 +350,6 @@ LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::strin
   if (shape(5) != std::make_pair<uint64_t, uint64_t>(uint64_t{samples}, 1)) {
     fail("'creep' holds " + std::to_string(m.arrays(5).rows()) + " samples; the curves list " +
          std::to_string(samples));
-  }
-  if (mesh != nullptr) {
-    if (static_cast<uint64_t>(mesh->vertices.cols()) != nodes ||
-        static_cast<uint64_t>(mesh->tetrahedra.cols()) != m.num_tets()) {
-      fail("made for a mesh of " + std::to_string(nodes) + " nodes and " +
-           std::to_string(m.num_tets()) + " tetrahedra; the organ's has " +
-           std::to_string(mesh->vertices.cols()) + " and " +
-           std::to_string(mesh->tetrahedra.cols()));
-    }
-    const std::string hash = MeshHash(*mesh);
-    if (hash != m.mesh_hash()) {
-      fail("made for another mesh (mesh hash " + m.mesh_hash() + "; the organ's is " + hash + ")");
-    }
   }
   KlModelData data;
   const auto en = static_cast<Eigen::Index>(nodes), ek = static_cast<Eigen::Index>(n);
@@ -264,6 +385,15 @@ LoadedReducedModel LoadReducedModel(const std::string& path, const mesh::TetMesh
   std::ostringstream text;
   text << in.rdbuf();
   return DecodeReducedModel(text.str(), path, mesh);
+}
+
+std::unique_ptr<models::TissueModel> LoadedReducedModel::Release() {
+  if (model != nullptr) return std::move(model);
+  return std::move(nonlinear);
+}
+
+const Eigen::MatrixXd& LoadedReducedModel::modes() const {
+  return model != nullptr ? model->data().modes : nonlinear->data().modes;
 }
 
 }  // namespace somasim::reduce

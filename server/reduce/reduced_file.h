@@ -11,6 +11,7 @@
 #include "common/mesh/mesh_types.h"
 #include "idl/reduced_model.pb.h"
 #include "server/models/reduced/kl_model.h"
+#include "server/models/reduced/nonlinear_model.h"
 
 namespace somasim::reduce {
 
@@ -32,20 +33,33 @@ std::string MeshHash(const mesh::TetMesh& mesh);
 // rest is the caller's) and `data`.
 std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata,
                                const models::reduced::KlModelData& data);
+// The same for the nonlinear model (kind "ecsw_nonlinear": its material, Prony terms and arrays
+// from `data`).
+std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata,
+                               const models::reduced::NonlinearModelData& data);
 // Writes them to `path`, which must not exist (a reduced model is never overwritten: write a
 // new one and point the scene at it). Throws ReducedFileError.
 void WriteReducedModel(const std::string& path, const reduced::ReducedModelMetadata& metadata,
                        const models::reduced::KlModelData& data);
+void WriteReducedModel(const std::string& path, const reduced::ReducedModelMetadata& metadata,
+                       const models::reduced::NonlinearModelData& data);
 
 struct LoadedReducedModel {
   reduced::ReducedModelMetadata metadata;
+  // One of the two, by the file's kind.
   std::unique_ptr<models::reduced::KlReducedModel> model;
+  std::unique_ptr<models::reduced::NonlinearReducedModel> nonlinear;
+  // Whichever it holds (moved out), and its modes and number of modes.
+  std::unique_ptr<models::TissueModel> Release();
+  const Eigen::MatrixXd& modes() const;
+  int32_t num_modes() const { return static_cast<int32_t>(modes().cols()); }
 };
 
 // Decodes and checks `bytes` (`name` for the messages): magic, version, checksums, the arrays'
 // shapes against each other and the metadata, then the model itself (KlReducedModel::Create's
-// checks: finite values, a positive definite reduced stiffness, creep curves). With `mesh`,
-// also that the file was made for it (node and element counts, MeshHash). Throws
+// checks: finite values, a positive definite reduced stiffness, creep curves; or
+// NonlinearReducedModel::Create's: element corners in range, positive weights, the material). With
+// `mesh`, also that the file was made for it (node and element counts, MeshHash). Throws
 // ReducedFileError.
 LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::string& name,
                                       const mesh::TetMesh* mesh);

@@ -1,6 +1,6 @@
 // somasim-reduce: makes a reduced model of a scene's organ from its full FEM model (issue 12;
 // docs/reduced.md).
-//   somasim-reduce SCENE --out FILE.somared [--organ ID]
+//   somasim-reduce SCENE --out FILE.somared [--nonlinear-out NL.somared] [--organ ID]
 //   somasim-reduce SCENE --evaluate FILE.somared --plan PLAN.txtpb [--organ ID]
 // SCENE is a *.scene.txtpb with a `reduction` block (the sampling plan) for the organ. Prints
 // progress on stderr and one JSON object on stdout: the modes, eigenvalues, candidates for K
@@ -46,6 +46,7 @@ constexpr int kExitInternal = 70;
 
 namespace scene = somasim::scene;
 namespace reduce = somasim::reduce;
+namespace models = somasim::models;
 
 // Up to `count` nodes of `candidates` spread out: the one nearest their centroid first, then
 // each time the one farthest from those chosen (all of them when count is 0 or larger).
@@ -113,21 +114,30 @@ int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
     return kExitBadInput;
   }
   const auto started = std::chrono::steady_clock::now();
+  const models::TissueModel& reduced = loaded.model != nullptr
+                                           ? static_cast<const models::TissueModel&>(*loaded.model)
+                                           : *loaded.nonlinear;
   const std::vector<reduce::CaseResult> results =
-      reduce::Evaluate(*organ.fem, organ.fixed_nodes, *loaded.model, plan);
+      reduce::Evaluate(*organ.fem, organ.fixed_nodes, reduced, plan, &loaded.modes());
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
-  std::printf("Reduced model %s (%d modes; %s) against the full model of %s, plan %s\n\n",
-              model_file.c_str(), loaded.model->num_modes(), loaded.metadata.stiffness().c_str(),
+  const std::string what =
+      loaded.nonlinear != nullptr
+          ? "nonlinear, ECSW on " + std::to_string(loaded.nonlinear->num_elements()) + " elements"
+          : loaded.metadata.stiffness();
+  std::printf("Reduced model %s (%s, %d modes; %s) against the full model of %s, plan %s\n\n",
+              model_file.c_str(), loaded.metadata.kind().c_str(), loaded.num_modes(), what.c_str(),
               organ.id.c_str(), plan_file.c_str());
   std::printf(
-      "| case | group | steps | field L2 error | loaded-node error | |u| full [mm] | "
-      "|u| reduced [mm] |\n|---|---|---|---|---|---|---|\n");
+      "| case | group | steps | field L2 error | loaded-node error | basis floor | "
+      "|u| full [mm] | |u| reduced [mm] | reduced step [µs] |\n"
+      "|---|---|---|---|---|---|---|---|---|\n");
   bool all_converged = true;
   for (const reduce::CaseResult& r : results) {
-    std::printf("| %s | %s | %d | %.1f %% | %.1f %% | %.3f | %.3f |%s\n", r.name.c_str(),
-                r.group.c_str(), r.steps, 100.0 * r.field_error, 100.0 * r.node_error,
-                1e3 * r.full_end_m, 1e3 * r.reduced_end_m,
+    std::printf("| %s | %s | %d | %.1f %% | %.1f %% | %.1f %% | %.3f | %.3f | %.0f |%s\n",
+                r.name.c_str(), r.group.c_str(), r.steps, 100.0 * r.field_error,
+                100.0 * r.node_error, 100.0 * r.basis_error, 1e3 * r.full_end_m,
+                1e3 * r.reduced_end_m, r.reduced_step_us,
                 r.converged ? "" : " (a full step did not converge)");
     all_converged = all_converged && r.converged;
   }
@@ -139,11 +149,15 @@ int RunMain(int argc, char** argv) {
   CLI::App app{
       "somasim-reduce: make a reduced model (seed 000's Karhunen-Loeve model) of a scene's organ "
       "from its full FEM model, by the scene's sampling plan (its reduction block)"};
-  std::string scene_arg, out_file, organ_id, evaluate_file, plan_file;
+  std::string scene_arg, out_file, organ_id, evaluate_file, plan_file, nonlinear_file;
   app.add_option("scene", scene_arg, "Scene file (*.scene.txtpb) with a reduction block")
       ->required();
   auto* out_option =
       app.add_option("--out", out_file, "The reduced model to write (*.somared; must not exist)");
+  app.add_option("--nonlinear-out", nonlinear_file,
+                 "Also write the nonlinear reduced model (ECSW) made from the same snapshots "
+                 "(*.somared; must not exist; hyperelastic organs)")
+      ->needs(out_option);
   app.add_option("--organ", organ_id, "The organ to reduce (default: the first reduction's)");
   auto* evaluate_option = app.add_option(
       "--evaluate", evaluate_file,
@@ -192,10 +206,11 @@ int RunMain(int argc, char** argv) {
                 << (organ_id.empty() ? "" : " for organ \"" + organ_id + "\"") << "\n";
       return kExitBadInput;
     }
-    if (std::filesystem::exists(out_file)) {
-      std::cerr << "somasim-reduce: " << out_file
-                << " exists (a reduced model is never overwritten)\n";
-      return kExitIo;
+    for (const std::string& f : {out_file, nonlinear_file}) {
+      if (!f.empty() && std::filesystem::exists(f)) {
+        std::cerr << "somasim-reduce: " << f << " exists (a reduced model is never overwritten)\n";
+        return kExitIo;
+      }
     }
     const scene::Reduction& r = s.reduction(plan_index);
     int organ_index = 0;
@@ -227,6 +242,7 @@ int RunMain(int argc, char** argv) {
           Spread(candidates, organ.rest(),
                  static_cast<size_t>(r.points_per_region() > 0 ? r.points_per_region() : 6));
       plan.points.insert(plan.points.end(), chosen.begin(), chosen.end());
+      plan.region_nodes.insert(plan.region_nodes.end(), candidates.begin(), candidates.end());
     }
     if (r.force_size() > 0) plan.forces.assign(r.force().begin(), r.force().end());
     if (r.directions() != 0) plan.directions = r.directions();
@@ -235,17 +251,30 @@ int RunMain(int argc, char** argv) {
     if (r.energy_fraction() > 0.0) plan.pod.energy_fraction = r.energy_fraction();
     if (r.max_modes() > 0) plan.pod.max_modes = r.max_modes();
     if (r.creep_radius() > 0.0) plan.creep_radius = r.creep_radius();
+    plan.nonlinear_pod.energy_fraction = plan.pod.energy_fraction;
+    if (r.nonlinear_max_modes() > 0) plan.nonlinear_pod.max_modes = r.nonlinear_max_modes();
+    if (r.cubature_tolerance() > 0.0) plan.cubature.tolerance = r.cubature_tolerance();
+    if (r.nonlinear_tilts() > 0) plan.tilts = r.nonlinear_tilts();
+    if (r.nonlinear_tilt_deg() > 0.0) plan.tilt_deg = r.nonlinear_tilt_deg();
+    plan.nonlinear_forces.assign(r.nonlinear_force().begin(), r.nonlinear_force().end());
     std::fprintf(stderr, "somasim-reduce: %s: %zu points, %zu magnitudes, %d directions\n",
                  organ.id.c_str(), plan.points.size(), plan.forces.size(), plan.directions);
     auto last_print = std::chrono::steady_clock::now() - std::chrono::seconds(10);
+    const auto progress = [&](const reduce::BuildProgress& p) {
+      const auto now = std::chrono::steady_clock::now();
+      if (p.done == p.total || now - last_print > std::chrono::seconds(2)) {
+        std::fprintf(stderr, "somasim-reduce: %s %zu/%zu\n", p.stage.c_str(), p.done, p.total);
+        last_print = now;
+      }
+    };
+    if (!nonlinear_file.empty() && organ.fem->kind() != models::fem::FemKind::kHyperelastic) {
+      std::cerr << "somasim-reduce: --nonlinear-out: " << organ.field
+                << " is not fem_hyperelastic (the nonlinear reduced model reduces a hyperelastic "
+                   "organ)\n";
+      return kExitBadInput;
+    }
     const reduce::BuildReport report =
-        reduce::BuildKlModel(*organ.fem, organ.volume, plan, [&](const reduce::BuildProgress& p) {
-          const auto now = std::chrono::steady_clock::now();
-          if (p.done == p.total || now - last_print > std::chrono::seconds(2)) {
-            std::fprintf(stderr, "somasim-reduce: %s %zu/%zu\n", p.stage.c_str(), p.done, p.total);
-            last_print = now;
-          }
-        });
+        reduce::BuildKlModel(*organ.fem, organ.volume, plan, progress);
     // The file.
     somasim::reduced::ReducedModelMetadata m;
     m.set_kind("kl_seed000");
@@ -273,6 +302,31 @@ int RunMain(int argc, char** argv) {
                               .count());
     m.set_build_seconds(report.seconds);
     reduce::WriteReducedModel(out_file, m, report.data);
+    nlohmann::json nonlinear_summary;
+    if (!nonlinear_file.empty()) {
+      const reduce::NonlinearBuildReport nl =
+          reduce::BuildNonlinearModel(*organ.fem, organ.volume, plan, report, progress);
+      somasim::reduced::ReducedModelMetadata nm = m;
+      nm.clear_eigenvalues();
+      for (const double e : nl.eigenvalues) nm.add_eigenvalues(e);
+      nm.set_kept_fraction(nl.kept_fraction);
+      nm.set_stiffness("nonlinear: ECSW cubature on " +
+                       std::to_string(nl.cubature.elements.size()) + " elements");
+      nm.set_cubature_residual(nl.cubature.relative_residual);
+      nm.set_build_seconds(report.seconds + nl.seconds);
+      reduce::WriteReducedModel(nonlinear_file, nm, nl.data);
+      nonlinear_summary["file"] = nonlinear_file;
+      nonlinear_summary["modes"] = nl.data.modes.cols();
+      nonlinear_summary["snapshots"] = nl.snapshots;
+      nonlinear_summary["kept_fraction"] = nl.kept_fraction;
+      nonlinear_summary["cubature_elements"] = nl.cubature.elements.size();
+      nonlinear_summary["cubature_residual"] = nl.cubature.relative_residual;
+      nonlinear_summary["cubature_converged"] = nl.cubature.converged;
+      nonlinear_summary["region_nodes"] = plan.region_nodes;
+      nonlinear_summary["region_solves"] = nl.region_solves;
+      nonlinear_summary["region_unconverged"] = nl.unconverged;
+      nonlinear_summary["build_seconds"] = nl.seconds;
+    }
     // The summary.
     nlohmann::json j;
     j["file"] = out_file;
@@ -296,6 +350,7 @@ int RunMain(int argc, char** argv) {
     j["stiffness"] = report.candidates[report.chosen];
     j["creep_curves"] = report.data.creep.size();
     j["build_seconds"] = report.seconds;
+    if (!nonlinear_summary.is_null()) j["nonlinear"] = nonlinear_summary;
     std::cout << j.dump(2) << "\n";
     return kExitOk;
   } catch (const scene::SceneError& e) {

@@ -386,7 +386,7 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
       std::filesystem::path path(organ.model().reduced_kl().file());
       if (path.is_relative()) path = std::filesystem::path(scene_dir) / path;
       try {
-        out.model = reduce::LoadReducedModel(path.string(), &out.volume).model;
+        out.model = reduce::LoadReducedModel(path.string(), &out.volume).Release();
       } catch (const reduce::ReducedFileError& e) {
         throw lines.Error(out.field + ".model.reduced_kl.file", e.what());
       }

@@ -8,6 +8,7 @@
 #include <string>
 
 #include "server/models/fem/hyperelastic.h"
+#include "server/models/reduced/nonlinear_model.h"
 
 namespace somasim::models::reduced {
 namespace {
@@ -24,7 +25,6 @@ class GrowingQr {
     r_.setZero();
   }
   Eigen::Index size() const { return k_; }
-  void Clear() { k_ = 0; }
   // Appends column v; false (nothing appended) if it is numerically in the span.
   bool Append(const Eigen::VectorXd& column) {
     Eigen::VectorXd v = column;
@@ -42,6 +42,32 @@ class GrowingQr {
     r_(k_, k_) = norm;
     ++k_;
     return true;
+  }
+  // Drops column p: R without it is upper Hessenberg from column p on; Givens rotations of rows
+  // (j, j + 1) restore the triangle and the same rotations of Q's columns keep G_P = Q R.
+  // O(k² + m k) instead of a new factorisation's O(m k²).
+  void Remove(Eigen::Index p) {
+    for (Eigen::Index j = p; j + 1 < k_; ++j) r_.col(j) = r_.col(j + 1);
+    --k_;
+    for (Eigen::Index j = p; j < k_; ++j) {
+      const double a = r_(j, j), b = r_(j + 1, j);
+      const double h = std::hypot(a, b);
+      if (h == 0.0) continue;
+      const double c = a / h, sn = b / h;
+      for (Eigen::Index col = j; col < k_; ++col) {
+        const double x = r_(j, col), y = r_(j + 1, col);
+        r_(j, col) = c * x + sn * y;
+        r_(j + 1, col) = -sn * x + c * y;
+      }
+      r_(j + 1, j) = 0.0;
+      for (Eigen::Index row = 0; row < q_.rows(); ++row) {
+        const double x = q_(row, j), y = q_(row, j + 1);
+        q_(row, j) = c * x + sn * y;
+        q_(row, j + 1) = -sn * x + c * y;
+      }
+    }
+    r_.row(k_).setZero();
+    r_.col(k_).setZero();
   }
   // argmin |G_P z − b|.
   Eigen::VectorXd Solve(const Eigen::VectorXd& b) const {
@@ -77,19 +103,6 @@ NnlsResult SparseNnls(const Eigen::MatrixXd& g, const Eigen::VectorXd& b, double
   Eigen::VectorXd w = Eigen::VectorXd::Zero(columns);
   std::vector<uint8_t> state(static_cast<size_t>(columns), 0);  // 1 active, 2 excluded
   Eigen::VectorXd residual = b, gradient(columns);
-  const auto rebuild = [&] {
-    qr.Clear();
-    std::vector<int32_t> kept;
-    for (const int32_t j : active) {
-      if (qr.Append(g.col(j))) {
-        kept.push_back(j);
-      } else {
-        state[static_cast<size_t>(j)] = 2;
-        w(j) = 0.0;
-      }
-    }
-    active = kept;
-  };
   while (residual.norm() > tolerance * b_norm && static_cast<int>(active.size()) < limit) {
     gradient.noalias() = g.transpose() * residual;
     Eigen::Index best = -1;
@@ -129,19 +142,16 @@ NnlsResult SparseNnls(const Eigen::MatrixXd& g, const Eigen::VectorXd& b, double
         w(active[i]) += alpha * (z(static_cast<Eigen::Index>(i)) - w(active[i]));
       }
       // Drop the columns at zero (the one just added too, if rounding put it there: it is
-      // excluded so that it is not picked again at once).
-      std::vector<int32_t> kept;
+      // excluded so that it is not picked again at once), last first.
       const double floor = 1e-14 * w.cwiseAbs().maxCoeff();
-      for (const int32_t j : active) {
-        if (w(j) > floor) {
-          kept.push_back(j);
-        } else {
-          w(j) = 0.0;
-          state[static_cast<size_t>(j)] = j == best ? 2 : 0;
-        }
+      for (auto i = static_cast<Eigen::Index>(active.size()) - 1; i >= 0; --i) {
+        const int32_t j = active[static_cast<size_t>(i)];
+        if (w(j) > floor) continue;
+        w(j) = 0.0;
+        state[static_cast<size_t>(j)] = j == best ? 2 : 0;
+        qr.Remove(i);
+        active.erase(active.begin() + i);
       }
-      active = kept;
-      rebuild();
     }
     residual = b;
     for (const int32_t j : active) residual.noalias() -= w(j) * g.col(j);
@@ -157,19 +167,6 @@ NnlsResult SparseNnls(const Eigen::MatrixXd& g, const Eigen::VectorXd& b, double
     }
   }
   return result;
-}
-
-Eigen::Matrix<double, 9, Eigen::Dynamic> ElementGradientMap(const fem::FemModel& full,
-                                                            const Eigen::MatrixXd& modes,
-                                                            int32_t element) {
-  const fem::TetElements& el = full.elements();
-  Eigen::Matrix<double, 9, Eigen::Dynamic> d = Eigen::MatrixXd::Zero(9, modes.cols());
-  for (int a = 0; a < 4; ++a) {
-    const Eigen::Vector3d grad = el.gradients.col(4 * element + a);
-    const auto rows = modes.middleRows(3 * el.tets(a, element), 3);
-    for (int j = 0; j < 3; ++j) d.middleRows(3 * j, 3) += grad(j) * rows;
-  }
-  return d;
 }
 
 Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
@@ -196,7 +193,8 @@ Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
   Eigen::MatrixXd g = Eigen::MatrixXd::Zero(n * snapshots, elements);
   for (int32_t e = 0; e < elements; ++e) {
     const double volume = full.elements().volumes[static_cast<size_t>(e)];
-    const Eigen::Matrix<double, 9, Eigen::Dynamic> d = ElementGradientMap(full, modes, e);
+    const Eigen::Matrix<double, 9, Eigen::Dynamic> d = ElementGradientMap(
+        modes, full.elements().tets.col(e), full.elements().gradients.middleCols<4>(4 * e));
     if (d.cwiseAbs().maxCoeff() == 0.0) continue;  // the modes do not strain it
     for (Eigen::Index s = 0; s < snapshots; ++s) {
       Eigen::Matrix<double, 9, 1> h = d * xi[static_cast<size_t>(s)];

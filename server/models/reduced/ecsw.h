@@ -58,10 +58,4 @@ Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
                        std::span<const mesh::Points> displacements,
                        const CubatureSettings& settings);
 
-// Each element's D_e (9 × n) as the nonlinear model builds it: rows i + 3j hold
-// Σ_a ∇N_a[j] B(3 node_a + i, :), so vec(F − I) = D_e ξ.
-Eigen::Matrix<double, 9, Eigen::Dynamic> ElementGradientMap(const fem::FemModel& full,
-                                                            const Eigen::MatrixXd& modes,
-                                                            int32_t element);
-
 }  // namespace somasim::models::reduced

@@ -20,6 +20,8 @@ class KlState final : public TissueState {
   double dt = 0.0, good_dt = 0.0;  // [s] the last step's
   Eigen::VectorXd rhs, load;       // n: the step's right-hand side and the tool's part of it
   Eigen::MatrixXd system;          // n × n: Bᵀ K B plus the springs
+  Eigen::MatrixXd springs;         // n × n: the springs' part
+  Eigen::VectorXd spring_rhs;      // n
   Eigen::LLT<Eigen::MatrixXd> llt;
   double onset = -1.0;  // [s] when the tool's load came on; < 0: no load
   double multiplier = 1.0, good_multiplier = 1.0;
@@ -162,6 +164,8 @@ std::unique_ptr<TissueState> KlReducedModel::MakeState() const {
   state->rhs = Eigen::VectorXd::Zero(n);
   state->load = Eigen::VectorXd::Zero(n);
   state->system = data_.reduced_stiffness;
+  state->springs = Eigen::MatrixXd::Zero(n, n);
+  state->spring_rhs = Eigen::VectorXd::Zero(n);
   state->llt = Eigen::LLT<Eigen::MatrixXd>(n);
   state->llt.compute(state->system);  // sizes its storage
   return state;
@@ -196,26 +200,11 @@ void KlReducedModel::Advance(const StepInputs& inputs, TissueState* base) const 
   }
   s->rhs += s->multiplier * s->load;
   // Springs: grasps, prescribed nodes, fixed nodes the modes can move.
-  bool springs = false;
-  const auto spring = [&](int32_t node, const Eigen::Vector3d& target, double k) {
-    if (k == 0.0) return;
-    if (!springs) {
-      s->system = data_.reduced_stiffness;
-      springs = true;
-    }
-    const auto rows = data_.modes.middleRows(3 * node, 3);
-    s->system.noalias() += k * rows.transpose() * rows;
-    s->rhs.noalias() += k * rows.transpose() * (target - data_.rest.col(node));
-  };
-  for (const Attachment& a : inputs.attachments) spring(a.node, a.target, a.stiffness);
-  for (size_t p = 0; p < inputs.prescribed_nodes.size(); ++p) {
-    spring(inputs.prescribed_nodes[p],
-           inputs.prescribed_positions->col(static_cast<Eigen::Index>(p)), data_.penalty_stiffness);
-  }
-  for (const int32_t node : inputs.fixed_nodes) {
-    if (moves_[static_cast<size_t>(node)] != 0) {
-      spring(node, s->positions.col(node), data_.penalty_stiffness);
-    }
+  const bool springs = SpringTerms(data_.modes, data_.rest, moves_.data(), data_.penalty_stiffness,
+                                   inputs, s->positions, &s->springs, &s->spring_rhs);
+  if (springs) {
+    s->system = data_.reduced_stiffness + s->springs;
+    s->rhs += s->spring_rhs;
   }
   s->xi_prev = s->xi;  // the last accepted step's
   if (springs) {

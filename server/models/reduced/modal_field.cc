@@ -114,4 +114,30 @@ int32_t AddProjectedLoads(const Eigen::MatrixXd& modes, const mesh::Points& f, E
   return loaded;
 }
 
+bool SpringTerms(const Eigen::MatrixXd& modes, const mesh::Points& rest, const uint8_t* moves,
+                 double penalty, const StepInputs& inputs, const mesh::Points& positions,
+                 Eigen::MatrixXd* matrix, Eigen::VectorXd* rhs) {
+  bool any = false;
+  const auto spring = [&](int32_t node, const Eigen::Vector3d& target, double k) {
+    if (k == 0.0) return;
+    if (!any) {
+      matrix->setZero();
+      rhs->setZero();
+      any = true;
+    }
+    const auto rows = modes.middleRows(3 * node, 3);
+    matrix->noalias() += k * rows.transpose() * rows;
+    rhs->noalias() += k * rows.transpose() * (target - rest.col(node));
+  };
+  for (const Attachment& a : inputs.attachments) spring(a.node, a.target, a.stiffness);
+  for (size_t p = 0; p < inputs.prescribed_nodes.size(); ++p) {
+    spring(inputs.prescribed_nodes[p],
+           inputs.prescribed_positions->col(static_cast<Eigen::Index>(p)), penalty);
+  }
+  for (const int32_t node : inputs.fixed_nodes) {
+    if (moves[static_cast<size_t>(node)] != 0) spring(node, positions.col(node), penalty);
+  }
+  return any;
+}
+
 }  // namespace somasim::models::reduced

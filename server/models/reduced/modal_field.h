@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
+#include "server/models/tissue_model.h"
 
 namespace somasim::models::reduced {
 
@@ -38,5 +39,14 @@ class ModalField {
 // vectorises). Returns the node with the largest load, or -1 when none is loaded. Allocates
 // nothing.
 int32_t AddProjectedLoads(const Eigen::MatrixXd& modes, const mesh::Points& f, Eigen::VectorXd* r);
+
+// The springs of a reduced model's step: grasps (their stiffness), prescribed nodes and fixed
+// nodes the modes can move (`moves`, N flags; to where they are in `positions`), each at
+// `penalty` [N/m]. With B_i node i's rows of B (3 × n): matrix = Σ k B_iᵀ B_i (n × n) and
+// rhs = Σ k B_iᵀ (target − X_i) (n), both zeroed first — only when some spring acts: returns
+// whether one did (matrix and rhs are then untouched). Allocates nothing.
+bool SpringTerms(const Eigen::MatrixXd& modes, const mesh::Points& rest, const uint8_t* moves,
+                 double penalty, const StepInputs& inputs, const mesh::Points& positions,
+                 Eigen::MatrixXd* matrix, Eigen::VectorXd* rhs);
 
 }  // namespace somasim::models::reduced

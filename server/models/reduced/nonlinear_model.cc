@@ -99,6 +99,17 @@ double BeginViscous(const std::vector<fem::PronyTerm>& prony, double dt,
 
 }  // namespace
 
+Eigen::Matrix<double, 9, Eigen::Dynamic> ElementGradientMap(
+    const Eigen::MatrixXd& modes, const Eigen::Ref<const Eigen::Matrix<int32_t, 4, 1>>& corners,
+    const Eigen::Ref<const Eigen::Matrix<double, 3, 4>>& gradients) {
+  Eigen::Matrix<double, 9, Eigen::Dynamic> d = Eigen::MatrixXd::Zero(9, modes.cols());
+  for (int a = 0; a < 4; ++a) {
+    const auto rows = modes.middleRows(3 * corners(a), 3);
+    for (int j = 0; j < 3; ++j) d.middleRows(3 * j, 3) += gradients(j, a) * rows;
+  }
+  return d;
+}
+
 std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearModelData data) {
   const Eigen::Index nodes = data.rest.cols();
   Require(nodes >= 1, "rest has no node");
@@ -173,13 +184,8 @@ NonlinearReducedModel::NonlinearReducedModel(NonlinearModelData data,
   scale_.resize(m);
   for (Eigen::Index e = 0; e < m; ++e) {
     scale_(e) = data_.weights[static_cast<size_t>(e)] * elements.volumes[static_cast<size_t>(e)];
-    for (int a = 0; a < 4; ++a) {
-      const Eigen::Vector3d grad = elements.gradients.col(4 * e + a);
-      const auto rows = data_.modes.middleRows(3 * data_.tets(a, e), 3);
-      for (int j = 0; j < 3; ++j) {
-        gradient_map_.middleRows(9 * e + 3 * j, 3) += grad(j) * rows;
-      }
-    }
+    gradient_map_.middleRows(9 * e, 9) =
+        ElementGradientMap(data_.modes, data_.tets.col(e), elements.gradients.middleCols<4>(4 * e));
   }
   gravity_modes_ = Eigen::MatrixXd::Zero(n, 3);
   moves_.assign(static_cast<size_t>(nodes), 0);
@@ -273,28 +279,8 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
   if (inputs.external_forces != nullptr) {
     AddProjectedLoads(data_.modes, *inputs.external_forces, &s->external);
   }
-  bool springs = false;
-  const auto spring = [&](int32_t node, const Eigen::Vector3d& target, double k) {
-    if (k == 0.0) return;
-    if (!springs) {
-      s->springs.setZero();
-      s->spring_rhs.setZero();
-      springs = true;
-    }
-    const auto rows = data_.modes.middleRows(3 * node, 3);
-    s->springs.noalias() += k * rows.transpose() * rows;
-    s->spring_rhs.noalias() += k * rows.transpose() * (target - data_.rest.col(node));
-  };
-  for (const Attachment& a : inputs.attachments) spring(a.node, a.target, a.stiffness);
-  for (size_t p = 0; p < inputs.prescribed_nodes.size(); ++p) {
-    spring(inputs.prescribed_nodes[p],
-           inputs.prescribed_positions->col(static_cast<Eigen::Index>(p)), data_.penalty_stiffness);
-  }
-  for (const int32_t node : inputs.fixed_nodes) {
-    if (moves_[static_cast<size_t>(node)] != 0) {
-      spring(node, s->positions.col(node), data_.penalty_stiffness);
-    }
-  }
+  const bool springs = SpringTerms(data_.modes, data_.rest, moves_.data(), data_.penalty_stiffness,
+                                   inputs, s->positions, &s->springs, &s->spring_rhs);
   const double g = BeginViscous(data_.prony, inputs.dt, s->history, s->elastic_last, &s->offset);
   const double* offset = data_.prony.empty() ? nullptr : s->offset.data();
   // Newton's method, reusing the last factor while it halves the residual, with a backtracking

@@ -63,6 +63,12 @@ struct NonlinearModelData {
   int max_newton_iterations = 30;
 };
 
+// D (9 × n) of one element: vec(F − I) = D ξ for u = B ξ, row i + 3j = Σ_a ∇N_a[j] B(3 c_a + i, :)
+// with corners c (4) and shape-function gradients ∇N_a (column a of `gradients`, 3 × 4).
+Eigen::Matrix<double, 9, Eigen::Dynamic> ElementGradientMap(
+    const Eigen::MatrixXd& modes, const Eigen::Ref<const Eigen::Matrix<int32_t, 4, 1>>& corners,
+    const Eigen::Ref<const Eigen::Matrix<double, 3, 4>>& gradients);
+
 class NonlinearReducedModel final : public TissueModel {
  public:
   // Throws std::invalid_argument naming the field that is wrong (sizes, a non-finite value, an

@@ -7,7 +7,8 @@
 
 namespace somasim::models::reduced {
 
-PodModes ModesOfSnapshots(const Eigen::MatrixXd& snapshots, const PodSettings& settings) {
+PodModes ModesOfSnapshots(const Eigen::MatrixXd& snapshots, const PodSettings& settings,
+                          const Eigen::MatrixXd* weighted) {
   const Eigen::Index dofs = snapshots.rows(), count = snapshots.cols();
   if (count < 1 || dofs < count) {
     throw std::invalid_argument("POD: snapshots must be K × M with 1 <= M <= K, got " +
@@ -21,8 +22,13 @@ PodModes ModesOfSnapshots(const Eigen::MatrixXd& snapshots, const PodSettings& s
   if (!(settings.rank_tolerance >= 0.0 && settings.rank_tolerance < 1.0)) {
     throw std::invalid_argument("POD: rank_tolerance must be in [0, 1)");
   }
+  if (weighted != nullptr && (weighted->rows() != dofs || weighted->cols() != count)) {
+    throw std::invalid_argument("POD: the weighted snapshots are not K × M");
+  }
   // The M × M correlation of the snapshots and its eigenpairs (ascending from Eigen).
-  const Eigen::MatrixXd correlation = snapshots.transpose() * snapshots;
+  Eigen::MatrixXd correlation =
+      snapshots.transpose() * (weighted != nullptr ? *weighted : snapshots);
+  correlation = 0.5 * (correlation + correlation.transpose()).eval();
   const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eigen(correlation);
   if (eigen.info() != Eigen::Success) throw std::invalid_argument("POD: eigensolver failed");
   PodModes out;

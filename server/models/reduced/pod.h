@@ -35,6 +35,13 @@ struct PodModes {
 // against the rounding the division by √λ_k amplifies for small λ_k. Throws
 // std::invalid_argument naming what is wrong (sizes, a non-finite value, no nonzero snapshot,
 // settings out of range).
-PodModes ModesOfSnapshots(const Eigen::MatrixXd& snapshots, const PodSettings& settings);
+// With `weighted` = W Q (K × M; W symmetric positive semi-definite, e.g. the stiffness: the
+// energy inner product), the decomposition is of QᵀWQ: the leading modes then span the
+// snapshots best in the W-norm (a mode may carry little displacement and much strain energy —
+// a loaded node's near field — which the Euclidean criterion would drop, while a Galerkin model
+// is only as good as its basis in the energy norm). The modes returned span the same subspace,
+// orthonormalised in the Euclidean sense; the eigenvalues are QᵀWQ's.
+PodModes ModesOfSnapshots(const Eigen::MatrixXd& snapshots, const PodSettings& settings,
+                          const Eigen::MatrixXd* weighted = nullptr);
 
 }  // namespace somasim::models::reduced

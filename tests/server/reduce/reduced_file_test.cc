@@ -13,6 +13,7 @@
 
 #include "common/mesh_gen/structured_meshes.h"
 #include "server/models/fem/fem_model.h"
+#include "server/models/fem/hyperelastic.h"
 #include "server/models/reduced/pod.h"
 #include "server/models/reduced/reduce_fem.h"
 
@@ -167,6 +168,89 @@ TEST(ReducedFile, RefusesInconsistentMetadataAndBadModelsByName) {
   g.data.reduced_stiffness.conservativeResize(2, 2);
   EXPECT_NE(Refusal(g.Bytes(), nullptr).find("'reduced_stiffness' is not n × n (n = 3)"),
             std::string::npos);
+}
+
+// The nonlinear model's file: its material, Prony terms, sampled elements and weights.
+struct NonlinearFixture {
+  NonlinearFixture() {
+    const Fixture f;
+    mesh = f.mesh;
+    data.rest = mesh.vertices;
+    data.masses = f.data.masses;
+    data.modes = f.data.modes;
+    data.tets = mesh.tetrahedra.leftCols(5);
+    data.weights = {1.5, 2.0, 0.25, 3.0, 1.0};
+    data.elements = {0, 1, 2, 3, 4};
+    data.material = models::fem::LiverNava2008();
+    data.prony = models::fem::LiverNava2008Prony();
+    metadata = f.metadata;
+    metadata.set_kind("");
+  }
+  std::string Bytes() const { return EncodeReducedModel(metadata, data); }
+  mesh::TetMesh mesh;
+  models::reduced::NonlinearModelData data;
+  reduced::ReducedModelMetadata metadata;
+};
+
+TEST(ReducedFile, TheNonlinearModelRoundTripsWithItsMaterialAndCubature) {
+  const NonlinearFixture f;
+  const LoadedReducedModel loaded = DecodeReducedModel(f.Bytes(), "nl.somared", &f.mesh);
+  ASSERT_EQ(loaded.model, nullptr);
+  ASSERT_NE(loaded.nonlinear, nullptr);
+  EXPECT_EQ(loaded.metadata.kind(), "ecsw_nonlinear");
+  const models::reduced::NonlinearModelData& d = loaded.nonlinear->data();
+  EXPECT_EQ(d.rest, f.data.rest);
+  EXPECT_EQ(d.modes, f.data.modes);
+  EXPECT_EQ(d.tets, f.data.tets);
+  EXPECT_EQ(d.weights, f.data.weights);
+  EXPECT_EQ(d.elements, f.data.elements);
+  EXPECT_EQ(d.material.c, f.data.material.c);
+  EXPECT_EQ(d.material.d, f.data.material.d);
+  ASSERT_EQ(d.prony.size(), 2u);
+  EXPECT_EQ(d.prony[1].tau, f.data.prony[1].tau);
+  EXPECT_EQ(loaded.num_modes(), 3);
+  // Released as the tissue model it is.
+  LoadedReducedModel again = DecodeReducedModel(f.Bytes(), "nl.somared", &f.mesh);
+  const std::unique_ptr<models::TissueModel> model = again.Release();
+  EXPECT_EQ(model->num_nodes(), f.mesh.vertices.cols());
+  // Truncated anywhere, or for another mesh: refused.
+  const std::string bytes = f.Bytes();
+  for (size_t n = 64; n < bytes.size(); n += 211) {
+    EXPECT_NE(Refusal(bytes.substr(0, n), &f.mesh).find("truncated at byte"), std::string::npos);
+  }
+  mesh::TetMesh moved = f.mesh;
+  moved.vertices(0, 3) += 1e-6;
+  EXPECT_NE(Refusal(bytes, &moved).find("made for another mesh"), std::string::npos);
+}
+
+TEST(ReducedFile, RefusesABadNonlinearModelByName) {
+  const auto refused = [](const NonlinearFixture& g) { return Refusal(g.Bytes(), nullptr); };
+  NonlinearFixture g;
+  g.data.weights[2] = -1.0;
+  EXPECT_NE(refused(g).find("a weight is not > 0"), std::string::npos) << refused(g);
+  g = NonlinearFixture();
+  g.data.weights.pop_back();
+  EXPECT_NE(refused(g).find("'weights' is not m × 1"), std::string::npos) << refused(g);
+  g = NonlinearFixture();
+  g.data.tets(2, 1) = 4000;
+  EXPECT_NE(refused(g).find("'tets' holds 4000"), std::string::npos) << refused(g);
+  g = NonlinearFixture();
+  g.data.material.c[0] = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_NE(refused(g).find("material"), std::string::npos) << refused(g);
+  g = NonlinearFixture();
+  g.data.prony = {{0.9, 1.0}, {0.9, 2.0}};
+  EXPECT_NE(refused(g).find("the Prony gammas sum above 1"), std::string::npos) << refused(g);
+  g = NonlinearFixture();
+  g.metadata.mutable_hyperelastic()->set_law("ogden");
+  // EncodeReducedModel writes the law from the data: corrupt it after encoding instead.
+  std::string bytes = g.Bytes();
+  const size_t at = bytes.find("reduced_polynomial");
+  ASSERT_NE(at, std::string::npos);
+  bytes.replace(at, 5, "ogden");  // the metadata's checksum then fails first
+  EXPECT_NE(Refusal(bytes, nullptr).find("checksum"), std::string::npos);
+  g = NonlinearFixture();
+  g.data.elements = {0, 1, -1, 3, 4};
+  EXPECT_NE(refused(g).find("'elements' mixes indices and -1"), std::string::npos) << refused(g);
 }
 
 }  // namespace
