@@ -322,6 +322,8 @@ int RunMain(int argc, char** argv) {
       nonlinear_summary["cubature_elements"] = nl.cubature.elements.size();
       nonlinear_summary["cubature_residual"] = nl.cubature.relative_residual;
       nonlinear_summary["cubature_converged"] = nl.cubature.converged;
+      nonlinear_summary["cubature_states"] = nl.cubature.snapshots;
+      nonlinear_summary["cubature_states_inverted"] = nl.cubature.inverted;
       nonlinear_summary["region_nodes"] = plan.region_nodes;
       nonlinear_summary["region_solves"] = nl.region_solves;
       nonlinear_summary["region_unconverged"] = nl.unconverged;

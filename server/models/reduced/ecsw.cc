@@ -191,6 +191,7 @@ Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
   const auto snapshots = static_cast<Eigen::Index>(xi.size());
   const int32_t elements = full.num_tets();
   Eigen::MatrixXd g = Eigen::MatrixXd::Zero(n * snapshots, elements);
+  std::vector<uint8_t> inverted(static_cast<size_t>(snapshots), 0);
   for (int32_t e = 0; e < elements; ++e) {
     const double volume = full.elements().volumes[static_cast<size_t>(e)];
     const Eigen::Matrix<double, 9, Eigen::Dynamic> d = ElementGradientMap(
@@ -199,15 +200,23 @@ Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
     for (Eigen::Index s = 0; s < snapshots; ++s) {
       Eigen::Matrix<double, 9, 1> h = d * xi[static_cast<size_t>(s)];
       const Eigen::Matrix3d f = Eigen::Matrix3d::Identity() + Eigen::Map<Eigen::Matrix3d>(h.data());
-      Require(f.determinant() > 0.0,
-              "a training displacement inverts element " + std::to_string(e));
+      if (!(f.determinant() > 0.0)) {  // its projection inverts an element: left out
+        inverted[static_cast<size_t>(s)] = 1;
+        continue;
+      }
       const Eigen::Matrix3d p = fem::FirstPiolaStress(full.material(), f);
       g.block(n * s, e, n, 1) =
           -volume * (d.transpose() * Eigen::Map<const Eigen::Matrix<double, 9, 1>>(p.data()));
     }
   }
-  Eigen::VectorXd b = g.rowwise().sum();
   Cubature result;
+  for (Eigen::Index s = 0; s < snapshots; ++s) {
+    if (inverted[static_cast<size_t>(s)] != 0) {
+      g.middleRows(n * s, n).setZero();
+      ++result.inverted;
+    }
+  }
+  Eigen::VectorXd b = g.rowwise().sum();
   for (Eigen::Index s = 0; s < snapshots; ++s) {
     const double norm = b.segment(n * s, n).norm();
     if (norm > 0.0) {

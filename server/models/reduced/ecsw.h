@@ -5,7 +5,9 @@
 // training displacements u_s (s = 1..S) projected onto the modes, ξ_s = Bᵀ u_s (least squares),
 // each element's reduced internal force g_es = −V_e D_eᵀ vec P(I + D_e ξ_s) (n values) is a
 // column block of G (nS × E), and the full reduced force b_s = Σ_e g_es the right-hand side.
-// Rows of snapshot s are divided by |b_s| (every snapshot counts alike, small loads too).
+// Rows of snapshot s are divided by |b_s| (every snapshot counts alike, small loads too). A
+// snapshot whose projection onto the modes inverts an element (a large load's local dent the
+// modes do not hold) is left out and counted.
 // Weights w >= 0 with few non-zeros and |G w − b| <= tolerance |b| come from the
 // non-negative least squares of Lawson & Hanson (1974), stopped at the tolerance: a greedy
 // active set that adds the element with the largest gradient Gᵀ(b − G w) and keeps the weights
@@ -49,6 +51,7 @@ struct Cubature {
   double relative_residual = 0.0;
   bool converged = false;
   int snapshots = 0;  // training displacements used (those with non-zero reduced force)
+  int inverted = 0;   // training displacements left out: their projection inverts an element
 };
 
 // ECSW weights for the hyperelastic `full` model (FemKind::kHyperelastic) on `modes`

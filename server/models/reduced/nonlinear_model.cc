@@ -33,6 +33,7 @@ class NonlinearState final : public TissueState {
   Eigen::VectorXd external, internal, residual, delta, spring_rhs, trial;  // n
   mutable Eigen::MatrixXd local;  // n × 3: LocalStiffness's K̂⁻¹ B_iᵀ
   int newton_iterations = 0;
+  double factor_springs = 0.0;  // the springs the factor holds (a signature; 0: none)
   const ModalField* field = nullptr;
   const double* rest = nullptr;
 
@@ -286,6 +287,11 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
   // Newton's method, reusing the last factor while it halves the residual, with a backtracking
   // line search on |r| (a correction that inverts an element or raises |r| is halved; with a
   // reused factor, the tangent is refreshed first).
+  // The predictor: the last step's change again (a smooth load history at 1 kHz then starts
+  // Newton next to the answer), when the step is as long as the last one and its residual is
+  // the smaller.
+  const bool extrapolate = s->dt == inputs.dt;
+  s->trial = s->xi + (s->xi - s->xi_prev);
   s->xi_prev = s->xi;
   s->dt = inputs.dt;
   double scale = 0.0;
@@ -313,10 +319,31 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
     return s->llt.info() == Eigen::Success;
   };
   double norm = 0.0;
-  bool ok = evaluate(s->xi, &norm), converged = false;
-  // A fresh tangent at once when springs act (their stiffness dwarfs the tissue's: a factor
-  // without them barely helps).
-  bool refresh = springs, fresh = false;
+  bool ok = evaluate(s->xi, &norm);
+  double predicted = 0.0;
+  if (ok && extrapolate && evaluate(s->trial, &predicted)) {
+    if (predicted < norm) {  // the buffers hold the predictor's r, grad and stress
+      s->xi = s->trial;
+      norm = predicted;
+    } else {
+      ok = evaluate(s->xi, &norm);
+    }
+  } else if (ok && extrapolate) {
+    ok = evaluate(s->xi, &norm);
+  }
+  bool converged = false;
+  // A fresh tangent at once when the springs differ from those of the factor (their stiffness
+  // dwarfs the tissue's: a factor without them barely helps); the same springs with moved
+  // targets (a grasp being pulled, a probe's contact) keep it.
+  double signature = 0.0;
+  if (springs) {
+    for (const Attachment& a : inputs.attachments) {
+      signature += (a.node + 1.0) * (1.0 + 1e-3 * a.stiffness);
+    }
+    signature += 7.0 * static_cast<double>(inputs.prescribed_nodes.size());
+    signature += 1e-9 * s->springs.trace();
+  }
+  bool refresh = signature != s->factor_springs, fresh = false;
   int iterations = 0;
   while (ok) {
     if (norm <= data_.newton_tolerance * scale || norm == 0.0) {
@@ -325,6 +352,7 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
     }
     if (iterations >= data_.max_newton_iterations) break;
     if (refresh && !fresh) {
+      s->factor_springs = signature;
       if (!refactor()) {
         ok = false;
         break;
@@ -341,6 +369,7 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
       if (trial_ok && (trial_norm < norm || trial_norm <= data_.newton_tolerance * scale)) break;
       if (!fresh) {  // a stale factor's direction: refresh it at ξ and start again
         double again = 0.0;
+        s->factor_springs = signature;
         ok = evaluate(s->xi, &again) && refactor();
         if (!ok) break;
         fresh = true;

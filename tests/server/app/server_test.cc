@@ -492,6 +492,55 @@ TEST(ServerOverDds, ASessionRunsAReducedOrganTheProbeFeelsAndMoves) {
   EXPECT_GT(moved, 1e-4F) << "the pressed kidney's largest displacement [m] beyond gravity's sag";
 }
 
+// The nonlinear reduced model (ECSW, QLV) in a session: a hyperelastic kidney reduced by
+// somasim-reduce --nonlinear-out, pressed by the probe at 1 kHz.
+TEST(ServerOverDds, ASessionRunsANonlinearReducedOrganTheProbeFeelsAndMoves) {
+  const std::string dir = TempDir("nonlinear");
+  const ToolRun reduce =
+      RunProgram("somasim-reduce", "'" + std::string(SOMASIM_TEST_DATA_DIR) +
+                                       "/scenes/kidney_nonlinear_reduction.scene.txtpb' --out " +
+                                       dir + "/k.somared --nonlinear-out " + dir + "/nl.somared");
+  ASSERT_EQ(reduce.status, 0) << reduce.out;
+  std::ofstream(dir + "/reduced.scene.txtpb")
+      << "format_version: 1\nname: \"nonlinear reduced kidney\"\ngravity { z: -9.81 }\n"
+         "organ { id: \"kidney\" builtin: \"kidney424\"\n"
+         "  model { reduced_kl { file: \"nl.somared\" } dt: 0.001 }\n"
+         "  fixed { box { min { x: -1 y: -1 z: -1 } max { x: 1 y: 1 z: -0.011 } } } }\n"
+         "tool { id: \"probe\" probe {} }\n";
+  auto server = StartProgram("somasim-server",
+                             ServerArgs(dir + "/reduced.scene.txtpb", "nonlinear", 152,
+                                        {"--duration", "4", "--report", dir + "/r.json"}),
+                             dir + "/server.log");
+  SessionClient c(152, "nonlinear");
+  ASSERT_TRUE(c.PollUntil(
+      [&] {
+        return c.has_session() && c.organs()["kidney"].decoder &&
+               c.organs()["kidney"].decoder->has_shape();
+      },
+      seconds(30)))
+      << ReadText(dir + "/server.log");
+  const std::vector<float> rest(c.organs()["kidney"].decoder->positions().begin(),
+                                c.organs()["kidney"].decoder->positions().end());
+  const Clock::time_point start = Clock::now();
+  uint64_t seq = 0;
+  float moved = 0.0F;
+  c.PollUntil(
+      [&] {
+        const double t = std::chrono::duration<double>(Clock::now() - start).count();
+        c.SendToolCommand(Pressing(t, ++seq));
+        const std::span<const float> p = c.organs()["kidney"].decoder->positions();
+        for (size_t k = 0; k < p.size(); ++k) moved = std::max(moved, std::abs(p[k] - rest[k]));
+        return false;
+      },
+      milliseconds(2500));
+  ASSERT_EQ(server->Wait(seconds(60)), 0) << ReadText(dir + "/server.log");
+  const nlohmann::json r = ReadJson(dir + "/r.json");
+  EXPECT_EQ(r["rejected_steps"], 0);
+  EXPECT_GT(r["tools"][0]["max_force_n"].get<double>(), 0.01) << r.dump();
+  EXPECT_GT(r["tools"][0]["contact_time_s"].get<double>(), 0.1) << r.dump();
+  EXPECT_GT(moved, 1e-4F) << "the pressed kidney's largest displacement [m] beyond gravity's sag";
+}
+
 TEST(ServerOverDds, InstructorPauseHoldsTheSessionResumeGoesOnAndResetRestarts) {
   const std::string dir = TempDir("pause");
   auto server = StartProgram("somasim-server", ServerArgs("builtin:tissue45", "pause", 146),
