@@ -190,7 +190,7 @@ TEST(ReduceProgram, TheNonlinearModelBeatsTheSeedMethodOnHeldOutLoads) {
                              "time: 0 scale: 0 time: 0.5 scale: 1 time: 1.5 scale: 1 time: 2 "
                              "scale: 0 end_time: 3"};
   for (int k = 0; k < 2; ++k) {
-    const int32_t node = held_out[static_cast<size_t>(4 * k + 1)];
+    const int32_t node = held_out[4 * static_cast<size_t>(k) + 1];
     const Eigen::Vector3d inward = -normals.col(node);
     const Eigen::Vector3d side = inward.cross(Eigen::Vector3d::UnitX()).normalized();
     const Eigen::Vector3d f = 0.25 * (std::cos(0.35) * inward + std::sin(0.35) * side);
