@@ -28,7 +28,8 @@ class NonlinearState final : public TissueState {
   // Scratch.
   Eigen::VectorXd grad, stress, offset;  // 9m: vec(F − I), w V vec(P), the step's offset
   Eigen::MatrixXd factors;               // 9m × n: blockdiag(w V ∂P/∂F) D
-  Eigen::MatrixXd tangent, springs;      // n × n
+  Eigen::MatrixXd tangent, springs;      // n × n: the factor's matrix, the springs' part
+  Eigen::MatrixXd tissue_tangent;        // n × n: the tissue's, as last assembled
   Eigen::LLT<Eigen::MatrixXd> llt;       // of the last tangent (plus springs)
   Eigen::VectorXd external, internal, residual, delta, spring_rhs, trial;  // n
   mutable Eigen::MatrixXd local;  // n × 3: LocalStiffness's K̂⁻¹ B_iᵀ
@@ -268,6 +269,7 @@ std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
   // The tangent at rest, factorised: the first step's Newton and LocalStiffness start from it.
   TangentFactors(state->grad.data(), 1.0, nullptr, state->factors.data());
   state->tangent.noalias() = gradient_map_.transpose() * state->factors;
+  state->tissue_tangent = state->tangent;
   state->llt = Eigen::LLT<Eigen::MatrixXd>(n);
   state->llt.compute(state->tangent);
   return state;
@@ -311,9 +313,15 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
     *norm = s->residual.norm();
     return std::isfinite(*norm);
   };
-  const auto refactor = [&] {  // the tangent at ξ (s->grad must be ξ's)
-    TangentFactors(s->grad.data(), g, offset, s->factors.data());
-    s->tangent.noalias() = gradient_map_.transpose() * s->factors;
+  // The factor of the tissue's tangent plus the springs: with `assemble`, the tissue's tangent
+  // at ξ first (s->grad must be ξ's; O(|E| (81 n + 9 n²)), the expensive part), else the last
+  // one assembled (an n × n factorisation, O(n³ / 3): what a change of springs costs).
+  const auto refactor = [&](bool assemble) {
+    if (assemble) {
+      TangentFactors(s->grad.data(), g, offset, s->factors.data());
+      s->tissue_tangent.noalias() = gradient_map_.transpose() * s->factors;
+    }
+    s->tangent = s->tissue_tangent;
     if (springs) s->tangent += s->springs;
     s->llt.compute(s->tangent);
     return s->llt.info() == Eigen::Success;
@@ -332,9 +340,9 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
     ok = evaluate(s->xi, &norm);
   }
   bool converged = false;
-  // A fresh tangent at once when the springs differ from those of the factor (their stiffness
-  // dwarfs the tissue's: a factor without them barely helps); the same springs with moved
-  // targets (a grasp being pulled, a probe's contact) keep it.
+  // When the springs differ from those of the factor (their stiffness dwarfs the tissue's: a
+  // factor without them barely helps), the factor is remade with them on the last tissue
+  // tangent — cheap; the same springs with moved targets (a grasp being pulled) keep it.
   double signature = 0.0;
   if (springs) {
     for (const Attachment& a : inputs.attachments) {
@@ -343,7 +351,11 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
     signature += 7.0 * static_cast<double>(inputs.prescribed_nodes.size());
     signature += 1e-9 * s->springs.trace();
   }
-  bool refresh = signature != s->factor_springs, fresh = false;
+  if (ok && signature != s->factor_springs) {
+    s->factor_springs = signature;
+    ok = refactor(false);
+  }
+  bool refresh = false, fresh = false;
   int iterations = 0;
   while (ok) {
     if (norm <= data_.newton_tolerance * scale || norm == 0.0) {
@@ -352,8 +364,7 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
     }
     if (iterations >= data_.max_newton_iterations) break;
     if (refresh && !fresh) {
-      s->factor_springs = signature;
-      if (!refactor()) {
+      if (!refactor(true)) {
         ok = false;
         break;
       }
@@ -369,8 +380,7 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
       if (trial_ok && (trial_norm < norm || trial_norm <= data_.newton_tolerance * scale)) break;
       if (!fresh) {  // a stale factor's direction: refresh it at ξ and start again
         double again = 0.0;
-        s->factor_springs = signature;
-        ok = evaluate(s->xi, &again) && refactor();
+        ok = evaluate(s->xi, &again) && refactor(true);
         if (!ok) break;
         fresh = true;
         s->delta = s->residual;

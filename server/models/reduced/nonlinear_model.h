@@ -22,9 +22,12 @@
 // or slowly moving load costs one or two force evaluations and no tangent), with a backtracking
 // line search on |r| (a correction that would invert an element or raise |r| is halved, after
 // refreshing a reused factor); a load too large to balance ends the step unconverged (counted)
-// at the last iterate, no element inverted. Grasps, prescribed
-// nodes and fixed nodes the modes can move are springs (penalty_stiffness) in r and K̂. The
-// Prony variables advance once the step has converged. Allocation-free; the full field is
+// at the last iterate, no element inverted. Each step starts from the last step's change
+// (a predictor) when that leaves the smaller residual. Grasps, prescribed nodes and fixed nodes
+// the modes can move are springs (penalty_stiffness) in r and K̂; a change of springs (a probe's
+// contact moving over the surface) re-factors the last assembled tissue tangent plus the new
+// springs (O(n³/3)) without assembling it again. The Prony variables advance once the step has
+// converged. Allocation-free; the full field is
 // reconstructed once per step (modal_field.h). A reduced model cannot be cut.
 #pragma once
 
@@ -59,7 +62,7 @@ struct NonlinearModelData {
   double max_local_stiffness = 1e4;   // [N/m], > 0 (as KlModelData)
   // Newton stops at |r| <= newton_tolerance × (|Bᵀ f_ext| + |Bᵀ f_int|) (> 0) or after
   // max_newton_iterations (>= 1), accepting the last iterate (counted as unconverged).
-  double newton_tolerance = 1e-8;
+  double newton_tolerance = 1e-6;
   int max_newton_iterations = 30;
 };
 
