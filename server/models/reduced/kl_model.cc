@@ -11,52 +11,31 @@
 namespace somasim::models::reduced {
 namespace {
 
-// The state: reduced coordinates (the state proper: positions and velocities follow from ξ,
-// ξ_prev and dt), the creep bookkeeping and the step's scratch, sized by MakeState.
-class KlState final : public TissueState {
+// The state: the reduced coordinates (ModalState), the creep bookkeeping and the step's
+// scratch, sized by MakeState.
+class KlState final : public ModalState {
  public:
-  Eigen::VectorXd xi, xi_prev, rate;  // n: ξ, the last step's ξ, ξ̇
-  Eigen::VectorXd good_xi, good_xi_prev;
-  double dt = 0.0, good_dt = 0.0;  // [s] the last step's
-  Eigen::VectorXd rhs, load;       // n: the step's right-hand side and the tool's part of it
-  Eigen::MatrixXd system;          // n × n: Bᵀ K B plus the springs
-  Eigen::MatrixXd springs;         // n × n: the springs' part
-  Eigen::VectorXd spring_rhs;      // n
+  Eigen::VectorXd rhs, load;   // n: the step's right-hand side and the tool's part of it
+  Eigen::MatrixXd system;      // n × n: Bᵀ K B plus the springs
+  Eigen::MatrixXd springs;     // n × n: the springs' part
+  Eigen::VectorXd spring_rhs;  // n
   Eigen::LLT<Eigen::MatrixXd> llt;
   double onset = -1.0;  // [s] when the tool's load came on; < 0: no load
   double multiplier = 1.0, good_multiplier = 1.0;
   double good_onset = -1.0;
-  // The model's single-precision modes and rest positions (for the rollback's rebuild).
-  const ModalField* field = nullptr;
-  const double* rest = nullptr;
-
-  // x and v from ξ, ξ_prev and dt.
-  void Rebuild() {
-    if (dt > 0.0) {
-      rate = (xi - xi_prev) / dt;
-    } else {
-      rate.setZero();
-    }
-    field->Reconstruct(xi.data(), rate.data(), rest, positions.data(), velocities.data());
-  }
 
  protected:
   void SaveGood() override {
-    good_xi = xi;
-    good_xi_prev = xi_prev;
-    good_dt = dt;
+    SaveModal();
     good_multiplier = multiplier;
     good_onset = onset;
   }
   // The base class has copied its last-good buffers (unused here) into x and v; they are
   // rebuilt from the last accepted ξ.
   void RestoreGood() override {
-    xi = good_xi;
-    xi_prev = good_xi_prev;
-    dt = good_dt;
     multiplier = good_multiplier;
     onset = good_onset;
-    Rebuild();
+    RestoreModal();
   }
 };
 
@@ -154,13 +133,7 @@ std::unique_ptr<TissueState> KlReducedModel::MakeState() const {
   auto state = std::make_unique<KlState>();
   InitialiseState(data_.rest, state.get());
   const Eigen::Index n = data_.modes.cols();
-  state->xi = Eigen::VectorXd::Zero(n);
-  state->good_xi = state->xi;
-  state->xi_prev = state->xi;
-  state->good_xi_prev = state->xi;
-  state->rate = state->xi;
-  state->field = &field_;
-  state->rest = data_.rest.data();
+  state->InitialiseModal(field_, data_.rest.data());
   state->rhs = Eigen::VectorXd::Zero(n);
   state->load = Eigen::VectorXd::Zero(n);
   state->system = data_.reduced_stiffness;

@@ -90,6 +90,38 @@ void ModalField::Reconstruct(const double* xi, const double* rate, const double*
   ReconstructRange(r, 0, dofs_);
 }
 
+void ModalState::InitialiseModal(const ModalField& modal_field, const double* rest_positions) {
+  xi = Eigen::VectorXd::Zero(modal_field.num_modes());
+  xi_prev = xi;
+  rate = xi;
+  good_xi_ = xi;
+  good_xi_prev_ = xi;
+  field_ = &modal_field;
+  rest_ = rest_positions;
+}
+
+void ModalState::Rebuild() {
+  if (dt > 0.0) {
+    rate = (xi - xi_prev) / dt;
+  } else {
+    rate.setZero();
+  }
+  field_->Reconstruct(xi.data(), rate.data(), rest_, positions.data(), velocities.data());
+}
+
+void ModalState::SaveModal() {
+  good_xi_ = xi;
+  good_xi_prev_ = xi_prev;
+  good_dt_ = dt;
+}
+
+void ModalState::RestoreModal() {
+  xi = good_xi_;
+  xi_prev = good_xi_prev_;
+  dt = good_dt_;
+  Rebuild();
+}
+
 int32_t AddProjectedLoads(const Eigen::MatrixXd& modes, const mesh::Points& f, Eigen::VectorXd* r) {
   const Eigen::Index nodes = f.cols();
   const auto* bits = reinterpret_cast<const uint64_t*>(f.data());

@@ -34,6 +34,30 @@ class ModalField {
   int32_t n_ = 0;
 };
 
+// The part of a reduced model's state both models share: the coordinates ξ (the state proper:
+// positions and velocities follow from ξ, the last step's ξ and dt), their last accepted copies,
+// and the field they are rebuilt into. Models derive their states from it.
+class ModalState : public TissueState {
+ public:
+  Eigen::VectorXd xi, xi_prev, rate;  // n: ξ, the last step's ξ, ξ̇ [1/s]
+  double dt = 0.0;                    // [s] the last step's
+  // Sizes the coordinates (n, zero) and points at the model's field and rest positions (3N).
+  void InitialiseModal(const ModalField& modal_field, const double* rest_positions);
+  // x and v from ξ, ξ_prev and dt.
+  void Rebuild();
+
+ protected:
+  // Copy ξ, ξ_prev and dt to and from their last accepted values (RestoreModal rebuilds x, v).
+  void SaveModal();
+  void RestoreModal();
+
+ private:
+  Eigen::VectorXd good_xi_, good_xi_prev_;
+  double good_dt_ = 0.0;
+  const ModalField* field_ = nullptr;
+  const double* rest_ = nullptr;
+};
+
 // r += Bᵀ f (B 3N × n, f 3 × N [N], r n): tools load a few nodes, so blocks of 8 nodes whose 24
 // values are all ±0 are skipped on an OR of their bits without the sign (a loop the compiler
 // vectorises). Returns the node with the largest load, or -1 when none is loaded. Allocates

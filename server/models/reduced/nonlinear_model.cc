@@ -15,13 +15,10 @@ namespace {
 
 using Eigen::Matrix3d;
 
-// The state: ξ and the Prony variables of the sampled elements (the state proper: positions and
-// velocities follow from ξ, ξ_prev and dt), the last good copies, and the step's scratch, sized
-// by MakeState.
-class NonlinearState final : public TissueState {
+// The state: the reduced coordinates (ModalState) and the Prony variables of the sampled
+// elements, their last good copies, and the step's scratch, sized by MakeState.
+class NonlinearState final : public ModalState {
  public:
-  Eigen::VectorXd xi, xi_prev, rate, good_xi, good_xi_prev;  // n
-  double dt = 0.0, good_dt = 0.0;                            // [s] the last step's
   // QLV (fem_model.h's ViscousStep) per sampled element: h_k (9 × terms × m, term-minor) and
   // the elastic stress S^e of the last step (9 × m) [Pa].
   Eigen::VectorXd history, good_history, elastic_last, good_elastic_last;
@@ -33,35 +30,18 @@ class NonlinearState final : public TissueState {
   Eigen::LLT<Eigen::MatrixXd> llt;       // of the last tangent (plus springs)
   Eigen::VectorXd external, internal, residual, delta, spring_rhs, trial;  // n
   mutable Eigen::MatrixXd local;  // n × 3: LocalStiffness's K̂⁻¹ B_iᵀ
-  int newton_iterations = 0;
-  double factor_springs = 0.0;  // the springs the factor holds (a signature; 0: none)
-  const ModalField* field = nullptr;
-  const double* rest = nullptr;
-
-  void Rebuild() {
-    if (dt > 0.0) {
-      rate = (xi - xi_prev) / dt;
-    } else {
-      rate.setZero();
-    }
-    field->Reconstruct(xi.data(), rate.data(), rest, positions.data(), velocities.data());
-  }
+  double factor_springs = 0.0;    // the springs the factor holds (a signature; 0: none)
 
  protected:
   void SaveGood() override {
-    good_xi = xi;
-    good_xi_prev = xi_prev;
-    good_dt = dt;
+    SaveModal();
     good_history = history;
     good_elastic_last = elastic_last;
   }
   void RestoreGood() override {
-    xi = good_xi;
-    xi_prev = good_xi_prev;
-    dt = good_dt;
     history = good_history;
     elastic_last = good_elastic_last;
-    Rebuild();
+    RestoreModal();
   }
 };
 
@@ -243,11 +223,7 @@ std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
   InitialiseState(data_.rest, state.get());
   const Eigen::Index n = data_.modes.cols(), m = data_.tets.cols();
   const auto terms = static_cast<Eigen::Index>(data_.prony.size());
-  state->xi = Eigen::VectorXd::Zero(n);
-  state->xi_prev = state->xi;
-  state->rate = state->xi;
-  state->good_xi = state->xi;
-  state->good_xi_prev = state->xi;
+  state->InitialiseModal(field_, data_.rest.data());
   state->history = Eigen::VectorXd::Zero(9 * m * terms);
   state->good_history = state->history;
   state->elastic_last = Eigen::VectorXd::Zero(9 * m);
@@ -264,8 +240,6 @@ std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
   state->spring_rhs = state->external;
   state->trial = state->external;
   state->local = Eigen::MatrixXd::Zero(n, 3);
-  state->field = &field_;
-  state->rest = data_.rest.data();
   // The tangent at rest, factorised: the first step's Newton and LocalStiffness start from it.
   TangentFactors(state->grad.data(), 1.0, nullptr, state->factors.data());
   state->tangent.noalias() = gradient_map_.transpose() * state->factors;
@@ -403,7 +377,6 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
     fresh = false;
     norm = trial_norm;
   }
-  s->newton_iterations = iterations;
   s->counters.solver_iterations += iterations;
   if (!ok) {
     s->xi.setConstant(std::numeric_limits<double>::quiet_NaN());  // rejected: rolled back
@@ -505,10 +478,6 @@ double NonlinearReducedModel::ElasticEnergyAt(const Eigen::VectorXd& xi) const {
 
 const Eigen::VectorXd& NonlinearReducedModel::Coordinates(const TissueState& state) const {
   return static_cast<const NonlinearState&>(state).xi;
-}
-
-int NonlinearReducedModel::LastNewtonIterations(const TissueState& state) const {
-  return static_cast<const NonlinearState&>(state).newton_iterations;
 }
 
 }  // namespace somasim::models::reduced

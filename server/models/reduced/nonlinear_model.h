@@ -102,7 +102,6 @@ class NonlinearReducedModel final : public TissueModel {
   // Σ_ê w_ê V_ê W(F_ê) [J] at ξ (n).
   double ElasticEnergyAt(const Eigen::VectorXd& xi) const;
   const Eigen::VectorXd& Coordinates(const TissueState& state) const;
-  int LastNewtonIterations(const TissueState& state) const;
   const NonlinearModelData& data() const { return data_; }
 
  protected:
