@@ -70,6 +70,11 @@ class TissueState {
   virtual void RestoreGood() {}
   mesh::Points last_good_positions_;  // restored when a step diverges
   mesh::Points last_good_velocities_;
+  // Written by the Advance of a model that checks the state it produces itself
+  // (TissueModel::ChecksStateItself): a position or velocity is not finite; a velocity component
+  // is above speed_limit() / √3 (the node's speed is then checked exactly).
+  bool checked_non_finite_ = false;
+  bool checked_maybe_too_fast_ = false;
 };
 
 struct EnergyReport {
@@ -119,6 +124,10 @@ class TissueModel {
   // caller edited the state in between, in which case it is the edited one.) The last-good
   // buffers then lag one step behind between steps, which nothing outside Step reads.
   virtual bool SavesGoodStateItself() const { return false; }
+  // True when Advance checks every position and velocity as it writes them and sets the state's
+  // checked_non_finite_ and checked_maybe_too_fast_ (the same tests as Step's own pass over the
+  // nodes, which Step then skips: a reduced model writes the whole field in one pass anyway).
+  virtual bool ChecksStateItself() const { return false; }
   // The last-good buffers of `state` (3 × num_nodes each), for a model that saves them itself.
   static double* LastGoodPositions(TissueState* state) {
     return state->last_good_positions_.data();

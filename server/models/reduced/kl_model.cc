@@ -133,7 +133,7 @@ std::unique_ptr<TissueState> KlReducedModel::MakeState() const {
   auto state = std::make_unique<KlState>();
   InitialiseState(data_.rest, state.get());
   const Eigen::Index n = data_.modes.cols();
-  state->InitialiseModal(field_, data_.rest.data());
+  state->InitialiseModal(field_, data_.rest.data(), speed_limit());
   state->rhs = Eigen::VectorXd::Zero(n);
   state->load = Eigen::VectorXd::Zero(n);
   state->system = data_.reduced_stiffness;

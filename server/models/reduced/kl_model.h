@@ -90,6 +90,8 @@ class KlReducedModel final : public TissueModel {
   // x and v from the last accepted ones, so the base class's last-good copies of the field are
   // not needed (two fewer passes over it per step).
   bool SavesGoodStateItself() const override { return true; }
+  // The reconstruction checks x and v as it writes them (modal_field.h).
+  bool ChecksStateItself() const override { return true; }
 
  private:
   explicit KlReducedModel(KlModelData data);

@@ -1,6 +1,7 @@
 #include "server/models/reduced/modal_field.h"
 
 #include <algorithm>
+#include <cmath>
 
 #include "server/models/cpu_features.h"
 
@@ -13,54 +14,83 @@ namespace somasim::models::reduced {
 namespace {
 
 struct Pass {
-  const float* modes;
-  size_t stride;
+  const float* modes;  // chunk c, mode j: kChunk floats at (c n + j) kChunk
   int32_t n;
-  const double* xi;
-  const double* rate;  // ξ̇ [1/s]
+  const float* xi;
+  const float* rate;  // ξ̇ [1/s]
   const double* rest;
   double* x;
   double* v;
+  double component_limit;  // [m/s]
 };
 
-void ReconstructRange(const Pass& r, size_t begin, size_t end) {
+// DOFs [begin, end) of one chunk (end - begin <= kChunk), portable.
+void ReconstructChunk(const Pass& r, size_t chunk, size_t begin, size_t end, FieldCheck* check) {
+  const float* block = r.modes + chunk * static_cast<size_t>(r.n) * ModalField::kChunk;
   for (size_t k = begin; k < end; ++k) {
-    double u = 0.0, w = 0.0;
+    const size_t d = k - chunk * ModalField::kChunk;
+    float u = 0.0F, w = 0.0F;
     for (int32_t j = 0; j < r.n; ++j) {
-      const auto b = static_cast<double>(r.modes[static_cast<size_t>(j) * r.stride + k]);
+      const float b = block[static_cast<size_t>(j) * ModalField::kChunk + d];
       u += r.xi[j] * b;
       w += r.rate[j] * b;
     }
-    r.x[k] = r.rest[k] + u;
-    r.v[k] = w;
+    r.x[k] = r.rest[k] + static_cast<double>(u);
+    r.v[k] = static_cast<double>(w);
+    check->non_finite = check->non_finite || !(r.x[k] - r.x[k] == 0.0) || !(r.v[k] - r.v[k] == 0.0);
+    check->maybe_too_fast = check->maybe_too_fast || std::abs(r.v[k]) > r.component_limit;
   }
 }
 
 #ifdef SOMASIM_MODAL_AVX512
-// 32 DOFs at a time: four 8-double accumulators for x and four for v, each column's 32 floats
-// converted as loaded (ξ_j and ξ̇_j broadcast once per column and chunk).
-__attribute__((target("avx512f"))) void ReconstructAvx512(const Pass& r, size_t count) {
+// One chunk (32 DOFs) at a time: two 16-float accumulators for u and two for v, one FMA per 16
+// DOFs and mode, the chunk's n × 32 floats read in order (one stream for the prefetcher); then
+// x = X + u and v in double, checked in registers as they are stored. (The zero-masked forms of
+// the extract and convert intrinsics: GCC 12 warns that the plain ones' source may be
+// uninitialised.)
+__attribute__((target("avx512f"))) FieldCheck ReconstructAvx512(const Pass& r, size_t count) {
+  static_assert(ModalField::kChunk == 32);
+  __mmask8 bad = 0, above = 0;
+  const __m512d limit = _mm512_set1_pd(r.component_limit);
   size_t k = 0;
+  const float* block = r.modes;
   for (; k + 32 <= count; k += 32) {
-    __m512d u[4], w[4];
-    for (int q = 0; q < 4; ++q) u[q] = w[q] = _mm512_setzero_pd();
-    const float* column = r.modes + k;
-    for (int32_t j = 0; j < r.n; ++j, column += r.stride) {
-      const __m512d xi = _mm512_set1_pd(r.xi[j]);
-      const __m512d rate = _mm512_set1_pd(r.rate[j]);
-      for (int q = 0; q < 4; ++q) {
-        const __m512d b = _mm512_maskz_cvtps_pd(0xFF, _mm256_loadu_ps(column + 8 * q));
-        u[q] = _mm512_fmadd_pd(b, xi, u[q]);
-        w[q] = _mm512_fmadd_pd(b, rate, w[q]);
-      }
+    __m512 u0 = _mm512_setzero_ps(), u1 = _mm512_setzero_ps();
+    __m512 w0 = _mm512_setzero_ps(), w1 = _mm512_setzero_ps();
+    for (int32_t j = 0; j < r.n; ++j, block += 32) {
+      const __m512 xi = _mm512_set1_ps(r.xi[j]);
+      const __m512 rate = _mm512_set1_ps(r.rate[j]);
+      const __m512 b0 = _mm512_loadu_ps(block);
+      const __m512 b1 = _mm512_loadu_ps(block + 16);
+      u0 = _mm512_fmadd_ps(b0, xi, u0);
+      u1 = _mm512_fmadd_ps(b1, xi, u1);
+      w0 = _mm512_fmadd_ps(b0, rate, w0);
+      w1 = _mm512_fmadd_ps(b1, rate, w1);
     }
+    const __m256 halves_u[4] = {
+        _mm256_castpd_ps(_mm512_maskz_extractf64x4_pd(0xF, _mm512_castps_pd(u0), 0)),
+        _mm256_castpd_ps(_mm512_maskz_extractf64x4_pd(0xF, _mm512_castps_pd(u0), 1)),
+        _mm256_castpd_ps(_mm512_maskz_extractf64x4_pd(0xF, _mm512_castps_pd(u1), 0)),
+        _mm256_castpd_ps(_mm512_maskz_extractf64x4_pd(0xF, _mm512_castps_pd(u1), 1))};
+    const __m256 halves_w[4] = {
+        _mm256_castpd_ps(_mm512_maskz_extractf64x4_pd(0xF, _mm512_castps_pd(w0), 0)),
+        _mm256_castpd_ps(_mm512_maskz_extractf64x4_pd(0xF, _mm512_castps_pd(w0), 1)),
+        _mm256_castpd_ps(_mm512_maskz_extractf64x4_pd(0xF, _mm512_castps_pd(w1), 0)),
+        _mm256_castpd_ps(_mm512_maskz_extractf64x4_pd(0xF, _mm512_castps_pd(w1), 1))};
     for (int q = 0; q < 4; ++q) {
       const size_t at = k + 8 * static_cast<size_t>(q);
-      _mm512_storeu_pd(r.x + at, _mm512_add_pd(_mm512_loadu_pd(r.rest + at), u[q]));
-      _mm512_storeu_pd(r.v + at, w[q]);
+      const __m512d x =
+          _mm512_add_pd(_mm512_loadu_pd(r.rest + at), _mm512_maskz_cvtps_pd(0xFF, halves_u[q]));
+      const __m512d v = _mm512_maskz_cvtps_pd(0xFF, halves_w[q]);
+      _mm512_storeu_pd(r.x + at, x);
+      _mm512_storeu_pd(r.v + at, v);
+      bad |= _mm512_cmp_pd_mask(_mm512_sub_pd(x, x), _mm512_sub_pd(v, v), _CMP_UNORD_Q);
+      above |= _mm512_cmp_pd_mask(_mm512_abs_pd(v), limit, _CMP_GT_OQ);
     }
   }
-  ReconstructRange(r, k, count);
+  FieldCheck check{bad != 0, above != 0};
+  if (k < count) ReconstructChunk(r, k / 32, k, count, &check);
+  return check;
 }
 #endif
 
@@ -68,30 +98,37 @@ __attribute__((target("avx512f"))) void ReconstructAvx512(const Pass& r, size_t 
 
 ModalField::ModalField(const Eigen::MatrixXd& modes)
     : dofs_(static_cast<size_t>(modes.rows())), n_(static_cast<int32_t>(modes.cols())) {
-  stride_ = (dofs_ + 15) / 16 * 16;
-  modes_.assign(stride_ * static_cast<size_t>(n_), 0.0F);
+  const size_t chunks = (dofs_ + kChunk - 1) / kChunk;
+  modes_.assign(chunks * static_cast<size_t>(n_) * kChunk, 0.0F);
   for (Eigen::Index j = 0; j < modes.cols(); ++j) {
     for (Eigen::Index k = 0; k < modes.rows(); ++k) {
-      modes_[static_cast<size_t>(j) * stride_ + static_cast<size_t>(k)] =
+      const auto dof = static_cast<size_t>(k);
+      const size_t chunk = dof / kChunk;
+      modes_[(chunk * static_cast<size_t>(n_) + static_cast<size_t>(j)) * kChunk + dof % kChunk] =
           static_cast<float>(modes(k, j));
     }
   }
 }
 
-void ModalField::Reconstruct(const double* xi, const double* rate, const double* rest, double* x,
-                             double* v) const {
-  const Pass r{modes_.data(), stride_, n_, xi, rate, rest, x, v};
+FieldCheck ModalField::Reconstruct(const float* xi, const float* rate, const double* rest,
+                                   double* x, double* v, double component_limit) const {
+  const Pass r{modes_.data(), n_, xi, rate, rest, x, v, component_limit};
 #ifdef SOMASIM_MODAL_AVX512
-  if (CpuHasAvx512()) {
-    ReconstructAvx512(r, dofs_);
-    return;
-  }
+  if (CpuHasAvx512()) return ReconstructAvx512(r, dofs_);
 #endif
-  ReconstructRange(r, 0, dofs_);
+  FieldCheck check;
+  for (size_t begin = 0; begin < dofs_; begin += kChunk) {
+    ReconstructChunk(r, begin / kChunk, begin, std::min(dofs_, begin + kChunk), &check);
+  }
+  return check;
 }
 
-void ModalState::InitialiseModal(const ModalField& modal_field, const double* rest_positions) {
+void ModalState::InitialiseModal(const ModalField& modal_field, const double* rest_positions,
+                                 double speed_limit) {
   xi = Eigen::VectorXd::Zero(modal_field.num_modes());
+  xi_single_ = Eigen::VectorXf::Zero(modal_field.num_modes());
+  rate_single_ = xi_single_;
+  component_limit_ = speed_limit / std::sqrt(3.0);
   xi_prev = xi;
   rate = xi;
   good_xi_ = xi;
@@ -106,7 +143,13 @@ void ModalState::Rebuild() {
   } else {
     rate.setZero();
   }
-  field_->Reconstruct(xi.data(), rate.data(), rest_, positions.data(), velocities.data());
+  xi_single_ = xi.cast<float>();
+  rate_single_ = rate.cast<float>();
+  const FieldCheck check =
+      field_->Reconstruct(xi_single_.data(), rate_single_.data(), rest_, positions.data(),
+                          velocities.data(), component_limit_);
+  checked_non_finite_ = check.non_finite || !xi.allFinite() || !rate.allFinite();
+  checked_maybe_too_fast_ = check.maybe_too_fast;
 }
 
 void ModalState::SaveModal() {
@@ -122,17 +165,58 @@ void ModalState::RestoreModal() {
   Rebuild();
 }
 
+namespace {
+
+constexpr Eigen::Index kLoadBlock = 8;  // nodes: 24 doubles, three 8-double vectors
+
+// The first block b >= first (of `blocks` whole blocks of kLoadBlock nodes) with a value other
+// than ±0, or `blocks` when there is none: an OR of the bits without the sign (vectorised by the
+// compiler), or on AVX-512 three compares per block.
+Eigen::Index NextLoadedBlockPortable(const double* f, Eigen::Index first, Eigen::Index blocks) {
+  const auto* bits = reinterpret_cast<const uint64_t*>(f);
+  for (Eigen::Index b = first; b < blocks; ++b) {
+    uint64_t any = 0;
+    for (Eigen::Index k = 3 * kLoadBlock * b; k < 3 * kLoadBlock * (b + 1); ++k) {
+      any |= bits[k] << 1U;
+    }
+    if (any != 0) return b;
+  }
+  return blocks;
+}
+
+#ifdef SOMASIM_MODAL_AVX512
+__attribute__((target("avx512f"))) Eigen::Index NextLoadedBlockAvx512(const double* f,
+                                                                      Eigen::Index first,
+                                                                      Eigen::Index blocks) {
+  static_assert(kLoadBlock == 8);
+  const __m512d zero = _mm512_setzero_pd();
+  for (Eigen::Index b = first; b < blocks; ++b) {
+    const double* p = f + 24 * b;
+    // NEQ_UQ: true for NaN too (the model's Step has refused non-finite loads already).
+    const __mmask8 any = _mm512_cmp_pd_mask(_mm512_loadu_pd(p), zero, _CMP_NEQ_UQ) |
+                         _mm512_cmp_pd_mask(_mm512_loadu_pd(p + 8), zero, _CMP_NEQ_UQ) |
+                         _mm512_cmp_pd_mask(_mm512_loadu_pd(p + 16), zero, _CMP_NEQ_UQ);
+    if (any != 0) return b;
+  }
+  return blocks;
+}
+#endif
+
+Eigen::Index NextLoadedBlock(const double* f, Eigen::Index first, Eigen::Index blocks) {
+#ifdef SOMASIM_MODAL_AVX512
+  if (CpuHasAvx512()) return NextLoadedBlockAvx512(f, first, blocks);
+#endif
+  return NextLoadedBlockPortable(f, first, blocks);
+}
+
+}  // namespace
+
 int32_t AddProjectedLoads(const Eigen::MatrixXd& modes, const mesh::Points& f, Eigen::VectorXd* r) {
   const Eigen::Index nodes = f.cols();
-  const auto* bits = reinterpret_cast<const uint64_t*>(f.data());
-  constexpr Eigen::Index kBlock = 8;
+  const Eigen::Index blocks = nodes / kLoadBlock;  // whole blocks; the rest node by node
   int32_t loaded = -1;
   double largest = 0.0;
-  for (Eigen::Index first = 0; first < nodes; first += kBlock) {
-    const Eigen::Index last = std::min(nodes, first + kBlock);
-    uint64_t any = 0;
-    for (Eigen::Index k = 3 * first; k < 3 * last; ++k) any |= bits[k] << 1U;
-    if (any == 0) continue;
+  const auto add = [&](Eigen::Index first, Eigen::Index last) {
     for (Eigen::Index i = first; i < last; ++i) {
       const double norm2 = f.col(i).squaredNorm();
       if (norm2 == 0.0) continue;
@@ -142,7 +226,12 @@ int32_t AddProjectedLoads(const Eigen::MatrixXd& modes, const mesh::Points& f, E
         loaded = static_cast<int32_t>(i);
       }
     }
+  };
+  for (Eigen::Index b = NextLoadedBlock(f.data(), 0, blocks); b < blocks;
+       b = NextLoadedBlock(f.data(), b + 1, blocks)) {
+    add(kLoadBlock * b, kLoadBlock * (b + 1));
   }
+  add(kLoadBlock * blocks, nodes);
   return loaded;
 }
 

@@ -1,10 +1,13 @@
 // The full field of a reduced model from its coordinates (issue 12): for each DOF k,
 //   x_k = X_k + Σ_j ξ_j B_kj,   v_k = Σ_j ξ̇_j B_kj,
-// with B (3N × n) held in single precision, column j at j · stride (stride = 3N rounded up to
-// 16), the sums in double. One pass over B (1.6 MB for liver4055 at 32 modes: it stays in a 2 MB
-// L2 cache where the doubles would not), reading X and writing x and v: AVX-512 32 DOFs at a time
-// where the CPU has it. Positions differ from a double reconstruction by ~1e-7 of the
-// displacement. Allocation-free after construction; pure.
+// with B (3N × n) held in single precision in chunks of 32 DOFs (chunk c holds its 32 rows of
+// every mode, mode after mode: one pass over B is one sequential stream), the sums in single
+// precision (ξ and ξ̇ rounded to float), x = X + u in double. 1.6 MB for liver4055 at 32 modes:
+// it stays in a 2 MB L2 cache where doubles would not. AVX-512 (where the CPU has it) does a
+// 16-DOF FMA per mode and checks each x and v as it stores them (non-finite; a velocity
+// component above the limit), so the model's Step needs no second pass over the nodes.
+// Positions differ from a double reconstruction by ~1e-7 of the displacement (the modes' own
+// rounding). Allocation-free after construction; pure.
 #pragma once
 
 #include <Eigen/Core>
@@ -17,20 +20,29 @@
 
 namespace somasim::models::reduced {
 
+// What a reconstruction wrote: some x or v not finite; some |v component| above the limit.
+struct FieldCheck {
+  bool non_finite = false;
+  bool maybe_too_fast = false;
+};
+
 class ModalField {
  public:
+  static constexpr size_t kChunk = 32;  // DOFs per block of the layout
+
   ModalField() = default;
   explicit ModalField(const Eigen::MatrixXd& modes);  // B [-], 3N × n
 
   int32_t num_modes() const { return n_; }
   size_t num_dofs() const { return dofs_; }
-  // x = X + B ξ and v = B ξ̇ (each num_dofs; rest X likewise; xi and rate n values).
-  void Reconstruct(const double* xi, const double* rate, const double* rest, double* x,
-                   double* v) const;
+  // x = X + B ξ and v = B ξ̇ (each num_dofs; rest X likewise; xi and rate n values), and
+  // the check of what it wrote against component_limit [m/s].
+  FieldCheck Reconstruct(const float* xi, const float* rate, const double* rest, double* x,
+                         double* v, double component_limit) const;
 
  private:
-  std::vector<float> modes_;
-  size_t stride_ = 0, dofs_ = 0;
+  std::vector<float> modes_;  // ceil(num_dofs / kChunk) × n × kChunk, zero-padded
+  size_t dofs_ = 0;
   int32_t n_ = 0;
 };
 
@@ -41,9 +53,12 @@ class ModalState : public TissueState {
  public:
   Eigen::VectorXd xi, xi_prev, rate;  // n: ξ, the last step's ξ, ξ̇ [1/s]
   double dt = 0.0;                    // [s] the last step's
-  // Sizes the coordinates (n, zero) and points at the model's field and rest positions (3N).
-  void InitialiseModal(const ModalField& modal_field, const double* rest_positions);
-  // x and v from ξ, ξ_prev and dt.
+  // Sizes the coordinates (n, zero) and points at the model's field and rest positions (3N);
+  // speed_limit [m/s] is the model's (TissueModel::speed_limit).
+  void InitialiseModal(const ModalField& modal_field, const double* rest_positions,
+                       double speed_limit);
+  // x and v from ξ, ξ_prev and dt, checked as they are written (the model's Step relies on it:
+  // TissueModel::ChecksStateItself).
   void Rebuild();
 
  protected:
@@ -53,7 +68,9 @@ class ModalState : public TissueState {
 
  private:
   Eigen::VectorXd good_xi_, good_xi_prev_;
+  Eigen::VectorXf xi_single_, rate_single_;  // n: ξ and ξ̇ rounded for the reconstruction
   double good_dt_ = 0.0;
+  double component_limit_ = 0.0;  // [m/s]
   const ModalField* field_ = nullptr;
   const double* rest_ = nullptr;
 };

@@ -223,7 +223,7 @@ std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
   InitialiseState(data_.rest, state.get());
   const Eigen::Index n = data_.modes.cols(), m = data_.tets.cols();
   const auto terms = static_cast<Eigen::Index>(data_.prony.size());
-  state->InitialiseModal(field_, data_.rest.data());
+  state->InitialiseModal(field_, data_.rest.data(), speed_limit());
   state->history = Eigen::VectorXd::Zero(9 * m * terms);
   state->good_history = state->history;
   state->elastic_last = Eigen::VectorXd::Zero(9 * m);

@@ -109,6 +109,8 @@ class NonlinearReducedModel final : public TissueModel {
   // The state is ξ and the Prony variables: a rejected step rebuilds x and v from the last
   // accepted ones (as the KL model).
   bool SavesGoodStateItself() const override { return true; }
+  // The reconstruction checks x and v as it writes them (modal_field.h).
+  bool ChecksStateItself() const override { return true; }
 
  private:
   NonlinearReducedModel(NonlinearModelData data, const fem::TetElements& elements);
