@@ -1,0 +1,692 @@
+#include "server/models/meshless/efg_model.h"
+
+#include <Eigen/LU>
+#include <Eigen/SparseCore>
+#include <Eigen/SparseLU>
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <utility>
+
+#include "server/models/fem/sparse_cholesky.h"
+
+namespace somasim::models::meshless {
+namespace {
+
+using Eigen::Matrix3d;
+using Eigen::Vector3d;
+using Eigen::Vector4d;
+
+[[noreturn]] void Refuse(const std::string& what) { throw std::invalid_argument("efg: " + what); }
+
+void CheckParameters(const EfgParameters& p) {
+  const auto finite_positive = [](double value, const char* what) {
+    if (!(value > 0.0) || !std::isfinite(value)) {
+      Refuse(std::string(what) + " must be a finite value > 0");
+    }
+  };
+  const auto finite_non_negative = [](double value, const char* what) {
+    if (!(value >= 0.0) || !std::isfinite(value)) {
+      Refuse(std::string(what) + " must be a finite value >= 0");
+    }
+  };
+  finite_positive(p.youngs_modulus, "youngs_modulus [Pa]");
+  if (!(p.poisson_ratio > -1.0 && p.poisson_ratio < 0.5)) {
+    Refuse("poisson_ratio must lie in (-1, 0.5)");
+  }
+  finite_positive(p.density, "density [kg/m^3]");
+  finite_non_negative(p.rayleigh_mass, "rayleigh_mass [1/s]");
+  finite_non_negative(p.rayleigh_stiffness, "rayleigh_stiffness [s]");
+  if (!(p.min_support_edge_factor >= 1.0) || !std::isfinite(p.min_support_edge_factor)) {
+    Refuse("min_support_edge_factor must be finite and >= 1");
+  }
+  if (p.gauss_points != 4 && p.gauss_points != 14) Refuse("gauss_points must be 4 or 14");
+  finite_positive(p.penalty_factor, "penalty_factor");
+  finite_positive(p.speed_limit, "speed_limit [m/s]");
+}
+
+// A symmetric Gauss rule on a tetrahedron: barycentric points (4 each) and weights summing to 1
+// (multiply by the volume).
+struct TetRule {
+  std::vector<Vector4d> points;
+  std::vector<double> weights;
+};
+
+void AddOrbit(TetRule* rule, double weight, double a, double b, bool two_two) {
+  if (!two_two) {  // the 4 permutations of (a, a, a, b)
+    for (int k = 0; k < 4; ++k) {
+      Vector4d p = Vector4d::Constant(a);
+      p[k] = b;
+      rule->points.push_back(p);
+      rule->weights.push_back(weight);
+    }
+    return;
+  }
+  // the 6 permutations of (a, a, b, b)
+  constexpr std::array<std::array<int, 2>, 6> kPairs = {
+      {{0, 1}, {0, 2}, {0, 3}, {1, 2}, {1, 3}, {2, 3}}};
+  for (const auto& pair : kPairs) {
+    Vector4d p = Vector4d::Constant(b);
+    p[pair[0]] = a;
+    p[pair[1]] = a;
+    rule->points.push_back(p);
+    rule->weights.push_back(weight);
+  }
+}
+
+// 4 points: exact for polynomials of degree 2. 14 points: degree 5, all weights positive
+// (Walkington's rule; checked: every monomial of degree <= 5 on the unit tetrahedron to 2e-15).
+TetRule MakeTetRule(int points) {
+  TetRule rule;
+  if (points == 4) {
+    AddOrbit(&rule, 0.25, 0.1381966011250105, 0.5854101966249685, false);
+  } else {
+    AddOrbit(&rule, 0.0734930431163619, 0.0927352503108912, 1.0 - 3.0 * 0.0927352503108912, false);
+    AddOrbit(&rule, 0.1126879257180162, 0.3108859192633006, 1.0 - 3.0 * 0.3108859192633006, false);
+    AddOrbit(&rule, 0.0425460207770812, 0.0455037041256496, 0.5 - 0.0455037041256496, true);
+  }
+  return rule;
+}
+
+}  // namespace
+
+// Φ's sparse LU (num_nodes × num_nodes) and Φᵀ's: û = Φ⁻¹ u and f = Φ⁻ᵀ f̂, for the state
+// reports (Energy, InternalForces), not for the step.
+struct EfgModel::Factors {
+  Eigen::SparseLU<Eigen::SparseMatrix<double>> phi;
+  Eigen::SparseLU<Eigen::SparseMatrix<double>> phi_transposed;
+};
+
+namespace {
+
+// The state of an EFG model: the nodal parameters (the truth; positions are derived), the
+// cache of the step's factorisation, and every buffer a step needs, sized by MakeState.
+class EfgState final : public TissueState {
+ public:
+  mesh::Points params, vparams;                // û [m], v̂ [m/s], 3 × num_nodes
+  mesh::Points good_params, good_vparams;      // the last accepted step's
+  mesh::Points u, v, h, rhs, dv, work;         // scratch, 3 × num_nodes
+  mesh::Points springs;                        // Σ k (target - X) per node [N], 3 × num_nodes
+  mesh::Points anchor;                         // [m] where each fixed node is held
+  std::vector<uint8_t> fixed_now, fixed_prev;  // num_nodes
+  std::vector<double> stiffness;               // s_I [N/m], num_nodes: this step's
+  std::vector<double> cached_stiffness;        // the s_I the factor was made with
+  double cached_dt = 0.0;
+  bool factor_valid = false;
+  bool static_valid = false;     // static_factor holds K + P (P non-zero)
+  std::vector<double> a_blocks;  // 9 × blocks: a system's blocks before the scalar gather
+  fem::LowerCsc system;          // the model's scalar pattern, values per factorisation
+  std::unique_ptr<fem::SparseCholesky> factor, static_factor;
+  mutable std::vector<double> local_rhs, local_solution;  // LocalStiffness scratch, 3 N
+
+ protected:
+  void SaveGood() override {
+    good_params = params;  // same sizes: no allocation
+    good_vparams = vparams;
+  }
+  void RestoreGood() override {
+    params = good_params;
+    vparams = good_vparams;
+  }
+};
+
+}  // namespace
+
+EfgModel::EfgModel() = default;
+EfgModel::~EfgModel() = default;
+
+std::unique_ptr<EfgModel> EfgModel::FromTetMesh(const mesh::TetMesh& mesh,
+                                                const EfgParameters& parameters) {
+  CheckParameters(parameters);
+  const auto n = static_cast<int32_t>(mesh.vertices.cols());
+  const auto num_tets = static_cast<int32_t>(mesh.tetrahedra.cols());
+  if (n == 0 || num_tets == 0) Refuse("mesh: empty (no nodes or no tetrahedra)");
+  for (int32_t i = 0; i < n; ++i) {
+    if (!mesh.vertices.col(i).allFinite()) {
+      Refuse("mesh: vertex " + std::to_string(i) + " has a non-finite coordinate");
+    }
+  }
+  std::unique_ptr<EfgModel> model(new EfgModel());
+  model->rest_ = mesh.vertices;
+  const double e = parameters.youngs_modulus, nu = parameters.poisson_ratio;
+  model->lambda_ = e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu));
+  model->mu_ = e / (2.0 * (1.0 + nu));
+  model->rayleigh_mass_ = parameters.rayleigh_mass;
+  model->rayleigh_stiffness_ = parameters.rayleigh_stiffness;
+  model->set_speed_limit(parameters.speed_limit);
+
+  // Tetrahedra: indices, volumes (positive), lumped masses ρV/4 per corner, longest edges.
+  std::vector<double> volume(static_cast<size_t>(num_tets));
+  std::vector<double> longest(static_cast<size_t>(n), 0.0);
+  model->mass_.assign(size_t(n), 0.0);
+  for (int32_t t = 0; t < num_tets; ++t) {
+    for (int a = 0; a < 4; ++a) {
+      const int32_t i = mesh.tetrahedra(a, t);
+      if (i < 0 || i >= n) {
+        Refuse("mesh: tetrahedron " + std::to_string(t) + " has node index " + std::to_string(i) +
+               " out of range");
+      }
+    }
+    const auto x = [&](int a) { return mesh.vertices.col(mesh.tetrahedra(a, t)); };
+    const double v = (x(1) - x(0)).dot((x(2) - x(0)).cross(x(3) - x(0))) / 6.0;
+    const double scale =
+        std::max({(x(1) - x(0)).norm(), (x(2) - x(0)).norm(), (x(3) - x(0)).norm()});
+    if (!(v > 1e-12 * scale * scale * scale)) {
+      Refuse("mesh: tetrahedron " + std::to_string(t) + " is flat or inverted (volume " +
+             std::to_string(v) + " m^3)");
+    }
+    volume[size_t(t)] = v;
+    for (int a = 0; a < 4; ++a) {
+      const int32_t i = mesh.tetrahedra(a, t);
+      model->mass_[size_t(i)] += parameters.density * v / 4.0;
+      for (int b = 0; b < 4; ++b) {
+        longest[size_t(i)] = std::max(longest[size_t(i)], (x(a) - x(b)).norm());
+      }
+    }
+  }
+  for (int32_t i = 0; i < n; ++i) {
+    if (!(model->mass_[size_t(i)] > 0.0)) {
+      Refuse("mesh: node " + std::to_string(i) + " belongs to no tetrahedron");
+    }
+    longest[size_t(i)] *= parameters.min_support_edge_factor;
+  }
+  model->shape_ = std::make_unique<MlsShapeFunctions>(mesh.vertices, parameters.mls, longest);
+
+  // Φ by rows: φ_J(X_I).
+  MlsEvaluation eval;
+  model->phi_start_.assign(size_t(n) + 1, 0);
+  for (int32_t i = 0; i < n; ++i) {
+    model->shape_->Evaluate(mesh.vertices.col(i), false, &eval);
+    model->phi_node_.insert(model->phi_node_.end(), eval.nodes.begin(), eval.nodes.end());
+    model->phi_value_.insert(model->phi_value_.end(), eval.values.begin(), eval.values.end());
+    model->phi_start_[size_t(i) + 1] = static_cast<int32_t>(model->phi_node_.size());
+  }
+
+  // Gauss points (tet by tet) and, for the pattern, the nodes covering each one.
+  const TetRule rule = MakeTetRule(parameters.gauss_points);
+  const auto gauss_of_tet = static_cast<int64_t>(rule.points.size());
+  model->num_gauss_ = gauss_of_tet * num_tets;
+  const auto gauss_point = [&](int32_t t, size_t g) {
+    Vector3d p = Vector3d::Zero();
+    for (int a = 0; a < 4; ++a) p += rule.points[g][a] * mesh.vertices.col(mesh.tetrahedra(a, t));
+    return p;
+  };
+  // Points: the Gauss points, then the node points (Φ's rows: M̂ = Φᵀ m Φ and P share them).
+  std::vector<int64_t> point_start{0};
+  std::vector<int32_t> point_nodes;
+  for (int32_t t = 0; t < num_tets; ++t) {
+    for (size_t g = 0; g < rule.points.size(); ++g) {
+      model->shape_->Evaluate(gauss_point(t, g), false, &eval);
+      point_nodes.insert(point_nodes.end(), eval.nodes.begin(), eval.nodes.end());
+      point_start.push_back(static_cast<int64_t>(point_nodes.size()));
+    }
+  }
+  for (int32_t i = 0; i < n; ++i) {
+    point_nodes.insert(point_nodes.end(), model->phi_node_.begin() + model->phi_start_[size_t(i)],
+                       model->phi_node_.begin() + model->phi_start_[size_t(i) + 1]);
+    point_start.push_back(static_cast<int64_t>(point_nodes.size()));
+  }
+  // The lower block pattern: column c holds every node >= c sharing a point with c.
+  {
+    const size_t num_points = point_start.size() - 1;
+    std::vector<int64_t> of_node_start(size_t(n) + 1, 0);
+    for (const int32_t j : point_nodes) ++of_node_start[size_t(j) + 1];
+    for (size_t j = 1; j <= size_t(n); ++j) of_node_start[j] += of_node_start[j - 1];
+    std::vector<int64_t> fill(of_node_start.begin(), of_node_start.end() - 1);
+    std::vector<int32_t> points_of_node(point_nodes.size());
+    for (size_t p = 0; p < num_points; ++p) {
+      for (int64_t k = point_start[p]; k < point_start[p + 1]; ++k) {
+        points_of_node[size_t(fill[size_t(point_nodes[size_t(k)])]++)] = static_cast<int32_t>(p);
+      }
+    }
+    std::vector<int32_t> mark(size_t(n), -1), column;
+    model->block_start_.assign(size_t(n) + 1, 0);
+    for (int32_t c = 0; c < n; ++c) {
+      column.clear();
+      for (int64_t k = of_node_start[size_t(c)]; k < of_node_start[size_t(c) + 1]; ++k) {
+        const auto p = size_t(points_of_node[size_t(k)]);
+        for (int64_t q = point_start[p]; q < point_start[p + 1]; ++q) {
+          const int32_t j = point_nodes[size_t(q)];
+          if (j >= c && mark[size_t(j)] != c) {
+            mark[size_t(j)] = c;
+            column.push_back(j);
+          }
+        }
+      }
+      if (mark[size_t(c)] != c) column.push_back(c);  // a node outside every support of its own
+      std::sort(column.begin(), column.end());
+      model->block_row_.insert(model->block_row_.end(), column.begin(), column.end());
+      model->block_start_[size_t(c) + 1] = static_cast<int64_t>(model->block_row_.size());
+    }
+  }
+  point_nodes = {};
+  point_start = {};
+  const size_t blocks = model->block_row_.size();
+  model->k_blocks_.assign(9 * blocks, 0.0);
+  model->m_blocks_.assign(blocks, 0.0);
+
+  // K = Σ_gauss w |J| B_Jᵀ D B_K, block (J, K) = w (λ ∇φ_J ∇φ_Kᵀ + μ ∇φ_K ∇φ_Jᵀ
+  //     + μ ∇φ_J·∇φ_K I) (the FEM rest block with ∇φ for ∇N).
+  const double lambda = model->lambda_, mu = model->mu_;
+  for (int32_t t = 0; t < num_tets; ++t) {
+    for (size_t g = 0; g < rule.points.size(); ++g) {
+      model->shape_->Evaluate(gauss_point(t, g), true, &eval);
+      const double w = rule.weights[g] * volume[size_t(t)];
+      const size_t m = eval.nodes.size();
+      for (size_t b = 0; b < m; ++b) {
+        const int32_t col = eval.nodes[b];
+        const Vector3d gb = eval.gradients.col(static_cast<Eigen::Index>(b));
+        int64_t slot = model->block_start_[size_t(col)];
+        for (size_t a = b; a < m; ++a) {
+          const int32_t row = eval.nodes[a];
+          while (model->block_row_[size_t(slot)] != row) ++slot;  // both sorted
+          const Vector3d ga = eval.gradients.col(static_cast<Eigen::Index>(a));
+          Eigen::Map<Matrix3d> block(model->k_blocks_.data() + 9 * slot);
+          block.noalias() += w * (lambda * ga * gb.transpose() + mu * gb * ga.transpose());
+          block.diagonal().array() += w * mu * ga.dot(gb);
+        }
+      }
+    }
+  }
+  // M̂ = Φᵀ diag(m) Φ.
+  for (int32_t i = 0; i < n; ++i) {
+    const int32_t begin = model->phi_start_[size_t(i)], end = model->phi_start_[size_t(i) + 1];
+    for (int32_t b = begin; b < end; ++b) {
+      const int32_t col = model->phi_node_[size_t(b)];
+      int64_t slot = model->block_start_[size_t(col)];
+      for (int32_t a = b; a < end; ++a) {
+        while (model->block_row_[size_t(slot)] != model->phi_node_[size_t(a)]) ++slot;
+        model->m_blocks_[size_t(slot)] +=
+            model->mass_[size_t(i)] * model->phi_value_[size_t(a)] * model->phi_value_[size_t(b)];
+      }
+    }
+  }
+  double max_diagonal = 0.0;
+  for (int32_t c = 0; c < n; ++c) {
+    const int64_t slot = model->block_start_[size_t(c)];  // the diagonal block comes first
+    const Eigen::Map<const Matrix3d> block(model->k_blocks_.data() + 9 * slot);
+    max_diagonal = std::max(max_diagonal, block.diagonal().maxCoeff());
+  }
+  model->penalty_ = parameters.penalty_factor * max_diagonal;
+
+  // The scalar lower CSC pattern of the 3N × 3N systems and each entry's block source.
+  model->csc_col_start_.assign(3 * size_t(n) + 1, 0);
+  for (int32_t c = 0; c < n; ++c) {
+    const int64_t begin = model->block_start_[size_t(c)], end = model->block_start_[size_t(c) + 1];
+    for (int cc = 0; cc < 3; ++cc) {
+      for (int64_t slot = begin; slot < end; ++slot) {
+        const int32_t row = model->block_row_[size_t(slot)];
+        for (int r = row == c ? cc : 0; r < 3; ++r) {
+          model->csc_rows_.push_back(3 * row + r);
+          model->csc_source_.push_back(9 * slot + r + 3 * cc);
+        }
+      }
+      model->csc_col_start_[3 * size_t(c) + size_t(cc) + 1] =
+          static_cast<int32_t>(model->csc_rows_.size());
+    }
+  }
+
+  // Φ's LU factors (for the reports' û = Φ⁻¹ u).
+  {
+    std::vector<Eigen::Triplet<double>> triplets;
+    triplets.reserve(model->phi_value_.size());
+    for (int32_t i = 0; i < n; ++i) {
+      for (int32_t k = model->phi_start_[size_t(i)]; k < model->phi_start_[size_t(i) + 1]; ++k) {
+        triplets.emplace_back(i, model->phi_node_[size_t(k)], model->phi_value_[size_t(k)]);
+      }
+    }
+    Eigen::SparseMatrix<double> phi(n, n);
+    phi.setFromTriplets(triplets.begin(), triplets.end());
+    model->factors_ = std::make_unique<Factors>();
+    model->factors_->phi.compute(phi);
+    Eigen::SparseMatrix<double> phi_t = phi.transpose();
+    model->factors_->phi_transposed.compute(phi_t);
+    if (model->factors_->phi.info() != Eigen::Success ||
+        model->factors_->phi_transposed.info() != Eigen::Success) {
+      Refuse("the node-value matrix Φ (φ_J(X_I)) is singular: nodes too close together?");
+    }
+  }
+  return model;
+}
+
+int64_t EfgModel::BlockIndex(int32_t row, int32_t col) const {
+  const auto begin = block_row_.begin() + block_start_[size_t(col)];
+  const auto end = block_row_.begin() + block_start_[size_t(col) + 1];
+  const auto it = std::lower_bound(begin, end, row);
+  return it != end && *it == row ? static_cast<int64_t>(it - block_row_.begin()) : -1;
+}
+
+std::unique_ptr<TissueState> EfgModel::MakeState() const {
+  auto state = std::make_unique<EfgState>();
+  InitialiseState(rest_, state.get());
+  const Eigen::Index n = num_nodes();
+  for (mesh::Points* p :
+       {&state->params, &state->vparams, &state->good_params, &state->good_vparams, &state->u,
+        &state->v, &state->h, &state->rhs, &state->dv, &state->work, &state->springs}) {
+    *p = mesh::Points::Zero(3, n);
+  }
+  state->anchor = rest_;
+  state->fixed_now.assign(size_t(n), 0);
+  state->fixed_prev.assign(size_t(n), 0);
+  state->stiffness.assign(size_t(n), 0.0);
+  state->cached_stiffness.assign(size_t(n), 0.0);
+  state->a_blocks.assign(k_blocks_.size(), 0.0);
+  state->system.size = 3 * static_cast<int32_t>(n);
+  state->system.col_start = csc_col_start_;
+  state->system.rows = csc_rows_;
+  state->system.values.assign(csc_rows_.size(), 0.0);
+  state->factor = std::make_unique<fem::SparseCholesky>();
+  state->factor->Analyse(state->system);
+  state->static_factor = std::make_unique<fem::SparseCholesky>();
+  state->static_factor->Analyse(state->system);
+  state->local_rhs.assign(3 * size_t(n), 0.0);
+  state->local_solution.assign(3 * size_t(n), 0.0);
+  return state;
+}
+
+const mesh::Points& EfgModel::NodalParameters(const TissueState& state) const {
+  return static_cast<const EfgState&>(state).params;
+}
+
+void EfgModel::MultiplyStiffness(const double* x, double* y) const {
+  const auto n = size_t(num_nodes());
+  std::fill(y, y + 3 * n, 0.0);
+  for (size_t c = 0; c < n; ++c) {
+    const Eigen::Map<const Vector3d> xc(x + 3 * c);
+    Eigen::Map<Vector3d> yc(y + 3 * c);
+    const auto begin = size_t(block_start_[c]), end = size_t(block_start_[c + 1]);
+    yc.noalias() += Eigen::Map<const Matrix3d>(k_blocks_.data() + 9 * begin) * xc;  // diagonal
+    for (size_t slot = begin + 1; slot < end; ++slot) {
+      const auto r = size_t(block_row_[slot]);
+      const Eigen::Map<const Matrix3d> block(k_blocks_.data() + 9 * slot);
+      Eigen::Map<Vector3d>(y + 3 * r).noalias() += block * xc;
+      yc.noalias() += block.transpose() * Eigen::Map<const Vector3d>(x + 3 * r);
+    }
+  }
+}
+
+void EfgModel::MultiplyPhi(const double* x, double* y) const {
+  const auto n = size_t(num_nodes());
+  for (size_t i = 0; i < n; ++i) {
+    Vector3d sum = Vector3d::Zero();
+    for (auto k = size_t(phi_start_[i]); k < size_t(phi_start_[i + 1]); ++k) {
+      sum += phi_value_[k] * Eigen::Map<const Vector3d>(x + 3 * size_t(phi_node_[k]));
+    }
+    Eigen::Map<Vector3d>(y + 3 * i) = sum;
+  }
+}
+
+void EfgModel::MultiplyPhiTransposed(const double* x, double* y) const {
+  const auto n = size_t(num_nodes());
+  std::fill(y, y + 3 * n, 0.0);
+  for (size_t i = 0; i < n; ++i) {
+    const Eigen::Map<const Vector3d> xi(x + 3 * i);
+    for (auto k = size_t(phi_start_[i]); k < size_t(phi_start_[i + 1]); ++k) {
+      Eigen::Map<Vector3d>(y + 3 * size_t(phi_node_[k])) += phi_value_[k] * xi;
+    }
+  }
+}
+
+void EfgModel::AssembleSystem(double k_scale, double m_scale, double s_scale, const double* s,
+                              double* blocks, double* values) const {
+  // Blocks first (k_scale K + m_scale M̂ + s_scale Σ s_I Φ_Iᵀ Φ_I), then gathered into the scalar
+  // CSC.
+  const size_t num_blocks = block_row_.size();
+  for (size_t b = 0; b < num_blocks; ++b) {
+    Eigen::Map<Matrix3d> block(blocks + 9 * b);
+    block = k_scale * Eigen::Map<const Matrix3d>(k_blocks_.data() + 9 * b);
+    block.diagonal().array() += m_scale * m_blocks_[b];
+  }
+  const auto n = num_nodes();
+  for (int32_t i = 0; i < n; ++i) {
+    if (s[size_t(i)] == 0.0) continue;
+    const int32_t begin = phi_start_[size_t(i)], end = phi_start_[size_t(i) + 1];
+    for (int32_t b = begin; b < end; ++b) {
+      for (int32_t a = b; a < end; ++a) {
+        const int64_t slot = BlockIndex(phi_node_[size_t(a)], phi_node_[size_t(b)]);
+        Eigen::Map<Matrix3d>(blocks + 9 * slot).diagonal().array() +=
+            s_scale * s[size_t(i)] * phi_value_[size_t(a)] * phi_value_[size_t(b)];
+      }
+    }
+  }
+  for (size_t k = 0; k < csc_source_.size(); ++k) values[k] = blocks[size_t(csc_source_[k])];
+}
+
+void EfgModel::NodeDisplacements(const mesh::Points& parameters,
+                                 mesh::Points* displacements) const {
+  displacements->resize(3, num_nodes());
+  MultiplyPhi(parameters.data(), displacements->data());
+}
+
+void EfgModel::DisplacementAt(const TissueState& state, const Vector3d& x, Vector3d* u,
+                              Matrix3d* gradient) const {
+  const mesh::Points& params = static_cast<const EfgState&>(state).params;
+  MlsEvaluation eval;
+  shape_->Evaluate(x, gradient != nullptr, &eval);
+  Vector3d sum = Vector3d::Zero();
+  Matrix3d grad = Matrix3d::Zero();
+  for (size_t a = 0; a < eval.nodes.size(); ++a) {
+    const auto col = static_cast<Eigen::Index>(a);
+    sum += eval.values[a] * params.col(eval.nodes[a]);
+    if (gradient != nullptr)
+      grad += params.col(eval.nodes[a]) * eval.gradients.col(col).transpose();
+  }
+  if (u != nullptr) *u = sum;
+  if (gradient != nullptr) *gradient = grad;
+}
+
+Matrix3d EfgModel::LocalStiffness(const TissueState& base, int32_t node) const {
+  const auto& st = static_cast<const EfgState&>(base);
+  if (!st.static_valid || node < 0 || node >= num_nodes()) return Matrix3d::Zero();
+  // Column k of the compliance Φ_I K_s⁻¹ Φ_Iᵀ: a unit force along k at the node point.
+  const int32_t begin = phi_start_[size_t(node)], end = phi_start_[size_t(node) + 1];
+  Matrix3d compliance;
+  for (int k = 0; k < 3; ++k) {
+    for (int32_t a = begin; a < end; ++a) {
+      st.local_rhs[3 * size_t(phi_node_[size_t(a)]) + size_t(k)] = phi_value_[size_t(a)];
+    }
+    st.static_factor->Solve(st.local_rhs.data(), st.local_solution.data());
+    Vector3d sum = Vector3d::Zero();
+    for (int32_t a = begin; a < end; ++a) {
+      const auto j = 3 * size_t(phi_node_[size_t(a)]);
+      sum += phi_value_[size_t(a)] * Eigen::Map<const Vector3d>(st.local_solution.data() + j);
+      st.local_rhs[j + size_t(k)] = 0.0;
+    }
+    compliance.col(k) = sum;
+  }
+  const Matrix3d stiffness = compliance.inverse();
+  return 0.5 * (stiffness + stiffness.transpose());
+}
+
+namespace {
+
+// û = Φ⁻¹ (x - X) for a state's positions (3 × num_nodes), by Φ's LU.
+mesh::Points ParametersOf(const Eigen::SparseLU<Eigen::SparseMatrix<double>>& phi,
+                          const mesh::Points& positions, const mesh::Points& rest) {
+  const Eigen::MatrixXd u = (positions - rest).transpose();  // num_nodes × 3
+  const Eigen::MatrixXd params = phi.solve(u);
+  return params.transpose();
+}
+
+}  // namespace
+
+void EfgModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
+  const mesh::Points params = ParametersOf(factors_->phi, state.positions, rest_);
+  mesh::Points k_params(3, num_nodes());
+  MultiplyStiffness(params.data(), k_params.data());
+  // Φᵀ f = -K û: the physical forces whose virtual work on δu = Φ δû is -δûᵀ K û.
+  const Eigen::MatrixXd rhs = -k_params.transpose();
+  const Eigen::MatrixXd f = factors_->phi_transposed.solve(rhs);
+  *forces = f.transpose();
+}
+
+EnergyReport EfgModel::Energy(const TissueState& state, const Vector3d& gravity) const {
+  EnergyReport report;
+  const mesh::Points params = ParametersOf(factors_->phi, state.positions, rest_);
+  mesh::Points k_params(3, num_nodes());
+  MultiplyStiffness(params.data(), k_params.data());
+  report.elastic = 0.5 * params.cwiseProduct(k_params).sum();
+  for (Eigen::Index i = 0; i < state.positions.cols(); ++i) {
+    const double m = mass_[size_t(i)];
+    report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
+    report.gravity -= m * gravity.dot(state.positions.col(i));
+    report.momentum += m * state.velocities.col(i);
+  }
+  return report;
+}
+
+void EfgModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base) const {
+  auto* st = static_cast<EfgState*>(base);
+  const int32_t n = num_nodes();
+  const auto in_range = [n](int32_t node) { return node >= 0 && node < n; };
+  if (loads.external_forces != nullptr &&
+      (loads.external_forces->cols() != n || !loads.external_forces->allFinite())) {
+    Refuse("SolveStatic: external_forces must be finite, 3 x num_nodes");
+  }
+  if (loads.parameter_forces != nullptr &&
+      (loads.parameter_forces->cols() != n || !loads.parameter_forces->allFinite())) {
+    Refuse("SolveStatic: parameter_forces must be finite, 3 x num_nodes");
+  }
+  if (!loads.gravity.allFinite()) Refuse("SolveStatic: gravity must be finite");
+  for (const int32_t node : loads.fixed_nodes) {
+    if (!in_range(node))
+      Refuse("SolveStatic: fixed node " + std::to_string(node) + " out of range");
+  }
+  for (const int32_t node : loads.prescribed_nodes) {
+    if (!in_range(node)) {
+      Refuse("SolveStatic: prescribed node " + std::to_string(node) + " out of range");
+    }
+  }
+  if (!loads.prescribed_nodes.empty() &&
+      (loads.prescribed_positions == nullptr ||
+       loads.prescribed_positions->cols() !=
+           static_cast<Eigen::Index>(loads.prescribed_nodes.size()) ||
+       !loads.prescribed_positions->allFinite())) {
+    Refuse("SolveStatic: prescribed_positions must be finite, 3 x prescribed_nodes.size()");
+  }
+  if (loads.fixed_nodes.empty() && loads.prescribed_nodes.empty()) {
+    Refuse("SolveStatic: needs fixed or prescribed nodes (a free body has no equilibrium)");
+  }
+  // Penalty springs κ: fixed at rest (target displacement 0), prescribed at their positions.
+  std::vector<double> s(size_t(n), 0.0);
+  mesh::Points h = mesh::Points::Zero(3, n);
+  for (const int32_t node : loads.fixed_nodes) s[size_t(node)] += penalty_;
+  for (size_t k = 0; k < loads.prescribed_nodes.size(); ++k) {
+    const int32_t node = loads.prescribed_nodes[k];
+    s[size_t(node)] += penalty_;
+    h.col(node) += penalty_ * (loads.prescribed_positions->col(static_cast<Eigen::Index>(k)) -
+                               rest_.col(node));
+  }
+  for (int32_t i = 0; i < n; ++i) h.col(i) += mass_[size_t(i)] * loads.gravity;
+  if (loads.external_forces != nullptr) h += *loads.external_forces;
+  mesh::Points rhs(3, n), solution(3, n);
+  MultiplyPhiTransposed(h.data(), rhs.data());
+  if (loads.parameter_forces != nullptr) rhs += *loads.parameter_forces;
+
+  fem::LowerCsc system;
+  system.size = 3 * n;
+  system.col_start = csc_col_start_;
+  system.rows = csc_rows_;
+  system.values.assign(csc_rows_.size(), 0.0);
+  std::vector<double> blocks(k_blocks_.size());
+  AssembleSystem(1.0, 0.0, 1.0, s.data(), blocks.data(), system.values.data());
+  fem::SparseCholesky cholesky;
+  cholesky.Analyse(system);
+  if (!cholesky.Factorise(system)) {
+    throw std::runtime_error(
+        "efg: SolveStatic: K + penalties is not positive definite "
+        "(too few held nodes to remove the rigid motions)");
+  }
+  cholesky.Solve(rhs.data(), solution.data());
+  st->params = solution;
+  st->vparams.setZero();
+  MultiplyPhi(st->params.data(), st->u.data());
+  st->positions = rest_ + st->u;
+  st->velocities.setZero();
+}
+
+void EfgModel::Advance(const StepInputs& inputs, TissueState* base) const {
+  auto* st = static_cast<EfgState*>(base);
+  const auto n = size_t(num_nodes());
+  const double dt = inputs.dt;
+  const double alpha = rayleigh_mass_, beta = rayleigh_stiffness_;
+
+  // 1. Springs at the node points: per node its summed stiffness s_I and Σ k (target - X_I).
+  std::fill(st->stiffness.begin(), st->stiffness.end(), 0.0);
+  st->springs.setZero();
+  std::fill(st->fixed_now.begin(), st->fixed_now.end(), uint8_t{0});
+  for (const int32_t node : inputs.fixed_nodes) {
+    const auto i = size_t(node);
+    if (st->fixed_now[i] != 0) continue;  // listed twice
+    st->fixed_now[i] = 1;
+    if (st->fixed_prev[i] == 0) st->anchor.col(node) = st->positions.col(node);
+    st->stiffness[i] += penalty_;
+    st->springs.col(node) += penalty_ * (st->anchor.col(node) - rest_.col(node));
+  }
+  std::swap(st->fixed_now, st->fixed_prev);  // no allocation
+  for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
+    const int32_t node = inputs.prescribed_nodes[k];
+    st->stiffness[size_t(node)] += penalty_;
+    st->springs.col(node) +=
+        penalty_ *
+        (inputs.prescribed_positions->col(static_cast<Eigen::Index>(k)) - rest_.col(node));
+  }
+  for (const Attachment& grasp : inputs.attachments) {
+    st->stiffness[size_t(grasp.node)] += grasp.stiffness;
+    st->springs.col(grasp.node) += grasp.stiffness * (grasp.target - rest_.col(grasp.node));
+  }
+
+  // 2. The factorisation's cache key: dt and every s_I.
+  if (!st->factor_valid || dt != st->cached_dt ||
+      !std::equal(st->stiffness.begin(), st->stiffness.end(), st->cached_stiffness.begin())) {
+    AssembleSystem(dt * dt + dt * beta, 1.0 + dt * alpha, dt * dt, st->stiffness.data(),
+                   st->a_blocks.data(), st->system.values.data());
+    st->factor_valid = st->factor->Factorise(st->system);
+    // The static K + P for LocalStiffness (nothing holds a body without springs).
+    st->static_valid = false;
+    if (std::any_of(st->stiffness.begin(), st->stiffness.end(), [](double s) { return s > 0; })) {
+      AssembleSystem(1.0, 0.0, 1.0, st->stiffness.data(), st->a_blocks.data(),
+                     st->system.values.data());
+      st->static_valid = st->static_factor->Factorise(st->system);
+    }
+    st->cached_dt = dt;
+    std::copy(st->stiffness.begin(), st->stiffness.end(), st->cached_stiffness.begin());
+    if (!st->factor_valid) {  // cannot happen for a positive mass; marks the step diverged
+      st->positions.setConstant(std::numeric_limits<double>::quiet_NaN());
+      return;
+    }
+  }
+
+  // 3. Physical displacements and velocities at the nodes.
+  MultiplyPhi(st->params.data(), st->u.data());
+  MultiplyPhi(st->vparams.data(), st->v.data());
+
+  // 4. Node-point forces h_I = f_ext + m_I (g - α v_I) + Σ k (t - X_I) - s_I (u_I + dt v_I).
+  const mesh::Points* external = inputs.external_forces;
+  for (size_t i = 0; i < n; ++i) {
+    const auto c = static_cast<Eigen::Index>(i);
+    Vector3d f = mass_[i] * (inputs.gravity - alpha * st->v.col(c)) + st->springs.col(c) -
+                 st->stiffness[i] * (st->u.col(c) + dt * st->v.col(c));
+    if (external != nullptr) f += external->col(c);
+    st->h.col(c) = f;
+  }
+  // 5. b = dt (Φᵀ h - K (û + (β + dt) v̂)).
+  st->work = st->params + (beta + dt) * st->vparams;
+  MultiplyStiffness(st->work.data(), st->dv.data());
+  MultiplyPhiTransposed(st->h.data(), st->rhs.data());
+  st->rhs = dt * (st->rhs - st->dv);
+
+  // 6. Solve, update the parameters, then the physical positions and velocities.
+  st->factor->Solve(st->rhs.data(), st->dv.data());
+  ++st->counters.solver_iterations;
+  st->vparams += st->dv;
+  st->params += dt * st->vparams;
+  MultiplyPhi(st->params.data(), st->u.data());
+  MultiplyPhi(st->vparams.data(), st->velocities.data());
+  st->positions = rest_ + st->u;
+}
+
+}  // namespace somasim::models::meshless

@@ -1,0 +1,174 @@
+// Element-free Galerkin (EFG) tissue model (SPEC §4.6, issue 13, first slice; seed 001:
+// "无网格迦辽金" — the surgical region's model, liver E = 5000 Pa, ν = 0.35, ρ = 1055 kg/m³),
+// behind the tissue-model interface. Pure kernel: no I/O.
+//
+// Discretisation. Nodes = the tet mesh's nodes; shape functions = MLS (mls.h: linear basis,
+// cubic-spline weight, ρ_J = 2 × distance to the 4th nearest node, at least 1.2 × the node's
+// longest tet edge). MLS is not interpolating: the unknowns are nodal parameters û_J
+// (3 × num_nodes) and the physical displacement at a point is u(x) = Σ_J φ_J(x) û_J; at the
+// nodes u(X_I) = Σ_J Φ_IJ û_J with Φ_IJ = φ_J(X_I) (num_nodes × num_nodes, sparse, precomputed).
+// state->positions are the PHYSICAL positions X_I + u(X_I); the state keeps û and v̂.
+//
+// Integration: the mesh's tetrahedra are background cells, each with a symmetric Gauss rule on
+// the tetrahedron (EfgParameters::gauss_points: 4 points, exact to degree 2 — the default; or
+// 14 points, exact to degree 5, Walkington's rule). MLS functions are rational and piecewise (the
+// spline's knots), so no rule integrates them exactly; the patch test's residual error measures
+// this and shrinks with the 14-point rule.
+//
+// Material: small-strain linear elasticity (Hooke, λ = Eν/((1+ν)(1-2ν)), μ = E/(2(1+ν))):
+//   K = Σ_gauss Bᵀ D B w |J|   (3N × 3N, sparse, symmetric; B the 6 × 3n strain of ∇φ),
+// elastic energy ½ ûᵀ K û. Masses: lumped, each tet's ρV split equally to its 4 nodes (m_I at the
+// node points), so the parameters' mass matrix is M̂ = Φᵀ diag(m) Φ (kinetic energy ½ Σ m_I |v_I|²
+// of the physical node velocities). Damping: Rayleigh, C = α M̂ + β K (the viscous part; seed 001
+// calls its model viscoelastic but gives no coefficients, so these are ours: α = 2 /s and
+// β = 0.01 s damp a liver's lowest modes, ω ≈ 7–20 rad/s, at ~15–20 % of critical).
+//
+// Loads at the node points enter through Φ: a point force F_I adds Φ_Iᵀ F_I to the parameters'
+// forces; gravity is the lumped equivalent, Φᵀ (m_I g); a grasp spring of stiffness k to target
+// t adds the energy ½ k |X_I + u_I - t|². Essential conditions (fixed and prescribed nodes) are
+// penalty springs at the node points, ½ κ |u_I - ū_I|² (κ = penalty_factor × max diagonal of K;
+// default 1e5: the constraint is met to ~1e-5 of the free response while the Cholesky factor
+// stays accurate). A fixed node is held where it was when it became fixed (the step before it
+// was not in the fixed set), so it does not drift step by step.
+//
+// Dynamics (Step): implicit Euler, linear in û (the model is linear):
+//   A Δv̂ = dt (f̂ - (K + P)(û + dt v̂) - C v̂ + Φᵀ g_springs),
+//   A = (1 + dt α) M̂ + (dt² + dt β) K + dt² P,   P = Σ_I s_I Φ_Iᵀ Φ_I,
+// s_I the node's summed penalty and grasp stiffness. A's pattern (supports that overlap) is
+// fixed at construction and analysed once (CHOLMOD); A is factorised on the first step and
+// again only when dt or the per-node stiffnesses s_I change (the cache key: a node fixed,
+// released or prescribed, a grasp made, released or re-stiffened). That re-factorisation
+// allocates (with the static K + P LocalStiffness uses: two numeric factorisations, ~0.15 s on
+// liver288 and ~10 s on liver4055); a step with an unchanged key allocates nothing.
+#pragma once
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <vector>
+
+#include "common/mesh/mesh_types.h"
+#include "server/models/meshless/mls.h"
+#include "server/models/tissue_model.h"
+
+namespace somasim::models::meshless {
+
+struct EfgParameters {
+  double youngs_modulus = 5000.0;    // E [Pa], finite, > 0 (seed 001's liver)
+  double poisson_ratio = 0.35;       // ν [-], in (-1, 0.5) (seed 001's liver)
+  double density = 1055.0;           // ρ [kg/m³], finite, > 0 (seed 001: 1.055 g/cm³)
+  double rayleigh_mass = 2.0;        // α [1/s], finite, >= 0: C = α M̂ + β K
+  double rayleigh_stiffness = 0.01;  // β [s], finite, >= 0
+  MlsParameters mls;                 // shape functions (mls.h)
+  // Every node's support covers at least this multiple of its longest incident tet edge
+  // (finite, >= 1): A(x) is then invertible everywhere inside the mesh.
+  double min_support_edge_factor = 1.2;
+  int gauss_points = 4;         // per tetrahedron: 4 (degree 2) or 14 (degree 5)
+  double penalty_factor = 1e5;  // κ / max diag K [-], finite, > 0
+  double speed_limit = 100.0;   // [m/s], finite, > 0: a faster node marks a diverged step
+};
+
+// What SolveStatic holds and loads (one linear solve).
+struct EfgStaticLoads {
+  const mesh::Points* external_forces = nullptr;  // [N] at the node points, 3 × num_nodes
+  // Forces on the nodal parameters directly (3 × num_nodes [N]): a distributed load
+  // ∫ φ_J t dΓ, e.g. a traction; or none.
+  const mesh::Points* parameter_forces = nullptr;
+  Eigen::Vector3d gravity = Eigen::Vector3d::Zero();   // [m/s²]
+  std::span<const int32_t> fixed_nodes;                // held at their rest positions
+  std::span<const int32_t> prescribed_nodes;           // moved to prescribed_positions
+  const mesh::Points* prescribed_positions = nullptr;  // [m], 3 × prescribed_nodes.size()
+};
+
+class EfgModel final : public TissueModel {
+ public:
+  // Throws std::invalid_argument naming the bad parameter or mesh fault (empty mesh, NaN
+  // coordinates, node index out of range, flat or inverted tetrahedron, node in no tetrahedron).
+  static std::unique_ptr<EfgModel> FromTetMesh(const mesh::TetMesh& mesh,
+                                               const EfgParameters& parameters);
+  ~EfgModel() override;
+
+  int32_t num_nodes() const override { return static_cast<int32_t>(rest_.cols()); }
+  std::unique_ptr<TissueState> MakeState() const override;
+  // The condensed static stiffness of node I's point, (Φ_I K_s⁻¹ Φ_Iᵀ)⁻¹ [N/m] (3 × 3,
+  // symmetric positive definite): the force a static point displacement of the node costs with
+  // everything else free, K_s = K + P for the supports and grasps of the state's last step.
+  // Zero before the first step and for a body held by nothing (a free body has no static
+  // stiffness). Three solves with the state's static factor; allocates nothing after the first
+  // call on a state.
+  Eigen::Matrix3d LocalStiffness(const TissueState& state, int32_t node) const override;
+  // The elastic forces at the node points [N], 3 × num_nodes: f = -Φ⁻ᵀ K û with û = Φ⁻¹ (x - X)
+  // from the state's positions, so f = -∂E/∂x for the elastic energy of Energy(). Allocates.
+  void InternalForces(const TissueState& state, mesh::Points* forces) const override;
+  // kinetic ½ Σ m_I |v_I|², elastic ½ ûᵀ K û (û from the state's positions), gravity -Σ m_I g·x_I.
+  EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
+  bool SupportsCutting() const override { return false; }
+
+  // Static equilibrium (K + P) û = f̂ (one factorisation and solve; allocates): writes the
+  // physical positions and û into the state and zeroes the velocities. Needs enough held nodes
+  // to remove the rigid motions. Throws std::invalid_argument for bad loads (sizes, indices,
+  // NaN) and std::runtime_error when the system is not positive definite (too few held nodes).
+  void SolveStatic(const EfgStaticLoads& loads, TissueState* state) const;
+
+  // For tests and later slices.
+  const MlsShapeFunctions& shape_functions() const { return *shape_; }
+  const std::vector<double>& masses() const { return mass_; }   // m_I [kg], num_nodes
+  const mesh::Points& rest_positions() const { return rest_; }  // X [m], 3 × num_nodes
+  double penalty() const { return penalty_; }                   // κ [N/m]
+  int64_t num_gauss_points() const { return num_gauss_; }
+  int64_t stiffness_blocks() const { return static_cast<int64_t>(block_row_.size()); }
+  // The state's nodal parameters û [m], 3 × num_nodes.
+  const mesh::Points& NodalParameters(const TissueState& state) const;
+  // u(x) = Σ φ_J(x) û_J and its gradient ∇u (∂u_i/∂x_j) at a point x [m], for the state's û.
+  // Allocates (an MLS evaluation).
+  void DisplacementAt(const TissueState& state, const Eigen::Vector3d& x, Eigen::Vector3d* u,
+                      Eigen::Matrix3d* gradient) const;
+  // Φ û for parameters û (3 × num_nodes): the physical displacements at the nodes.
+  void NodeDisplacements(const mesh::Points& parameters, mesh::Points* displacements) const;
+
+ protected:
+  void Advance(const StepInputs& inputs, TissueState* state) const override;
+
+ private:
+  EfgModel();
+  struct Factors;  // Φ's sparse LU (for û from positions), kept out of this header
+
+  // y = K x (x, y 3 × num_nodes flat) by the symmetric lower block storage.
+  void MultiplyStiffness(const double* x, double* y) const;
+  // y = Φ x and y = Φᵀ x (3 × num_nodes flat each).
+  void MultiplyPhi(const double* x, double* y) const;
+  void MultiplyPhiTransposed(const double* x, double* y) const;
+  // k_scale K + m_scale M̂ + s_scale Σ_I s_I Φ_Iᵀ Φ_I (s: num_nodes [N/m]) into `blocks`
+  // (9 × blocks, the lower block pattern) and gathered into `values` (the scalar lower CSC
+  // pattern).
+  void AssembleSystem(double k_scale, double m_scale, double s_scale, const double* s,
+                      double* blocks, double* values) const;
+  // The index of block (row, col), row >= col, in the lower block pattern.
+  int64_t BlockIndex(int32_t row, int32_t col) const;
+
+  mesh::Points rest_;  // X [m], 3 × num_nodes
+  std::unique_ptr<MlsShapeFunctions> shape_;
+  std::vector<double> mass_;  // m_I [kg], num_nodes
+  // Φ by rows: node I's row is phi_node_/phi_value_[phi_start_[I] .. phi_start_[I+1]).
+  std::vector<int32_t> phi_start_, phi_node_;
+  std::vector<double> phi_value_;
+  // The lower block pattern of K and A: column c's blocks are block_row_[block_start_[c] ..
+  // block_start_[c+1]) (sorted rows >= c, the diagonal first); K's 3 × 3 blocks column-major at
+  // 9 × block index; M̂'s scalar coefficient (times I) per block.
+  std::vector<int64_t> block_start_;
+  std::vector<int32_t> block_row_;
+  std::vector<double> k_blocks_;  // [N/m], 9 × blocks
+  std::vector<double> m_blocks_;  // [kg], blocks
+  // The scalar lower CSC pattern (3N columns) and, per scalar entry, its block index and place
+  // in the block (b * 9 + r + 3 c).
+  std::vector<int32_t> csc_col_start_, csc_rows_;
+  std::vector<int64_t> csc_source_;
+  std::unique_ptr<Factors> factors_;
+  double lambda_ = 0.0, mu_ = 0.0;  // Lamé [Pa]
+  double rayleigh_mass_ = 0.0, rayleigh_stiffness_ = 0.0;
+  double penalty_ = 0.0;  // κ [N/m]: the penalty springs
+  int64_t num_gauss_ = 0;
+};
+
+}  // namespace somasim::models::meshless
