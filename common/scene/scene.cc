@@ -188,7 +188,16 @@ void CheckMaterial(const Where& m, const Material& material, const Model& model)
     }
   } else {
     m.Positive("youngs_modulus", material.youngs_modulus());
-    if (IsFemModel(model)) CheckPoisson(m, material.poisson_ratio());
+    if (IsFemModel(model) || model.has_efg()) CheckPoisson(m, material.poisson_ratio());
+  }
+  if (model.has_efg()) {  // its damping is the model's (α and β in model.efg)
+    if (material.rayleigh_mass() != 0.0) {
+      m.Fail("rayleigh_mass", "the efg model takes its damping from model.efg.rayleigh_mass");
+    }
+    if (material.rayleigh_stiffness() != 0.0) {
+      m.Fail("rayleigh_stiffness",
+             "the efg model takes its damping from model.efg.rayleigh_stiffness");
+    }
   }
   const bool viscous = material.prony_size() > 0 || material.liver_nava2008_prony();
   if (viscous && !IsFemModel(model)) m.FailHere("prony terms (QLV) need a FEM model");
@@ -264,6 +273,24 @@ void CheckTool(const Where& t, const Tool& tool, std::set<std::string>* ids) {
   }
 }
 
+// The EFG model's settings (unset: the model's defaults).
+void CheckEfg(const Where& e, const Efg& efg) {
+  if (efg.has_gauss_points() && efg.gauss_points() != 4 && efg.gauss_points() != 14) {
+    e.Fail("gauss_points", "must be 4 or 14 (points per tetrahedron)");
+  }
+  if (efg.has_support_scale() &&
+      !(efg.support_scale() >= 1.0 && std::isfinite(efg.support_scale()))) {
+    e.Fail("support_scale", "must be a finite value >= 1");
+  }
+  if (efg.has_support_neighbours() &&
+      !(efg.support_neighbours() >= 1 && efg.support_neighbours() <= 64)) {
+    e.Fail("support_neighbours", "must lie in 1..64");
+  }
+  if (efg.has_penalty_factor()) e.Positive("penalty_factor", efg.penalty_factor());
+  if (efg.has_rayleigh_mass()) e.NonNegative("rayleigh_mass", efg.rayleigh_mass());
+  if (efg.has_rayleigh_stiffness()) e.NonNegative("rayleigh_stiffness", efg.rayleigh_stiffness());
+}
+
 void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) {
   CheckId(o, organ.id(), ids);
   switch (organ.mesh_case()) {
@@ -288,7 +315,7 @@ void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) 
   if (model.kind_case() == Model::KIND_NOT_SET) {
     m.FailHere(
         "needs a kind: mass_spring, molecular, position_based, fem_linear, fem_corotational, "
-        "fem_hyperelastic or reduced_kl");
+        "fem_hyperelastic, reduced_kl or efg");
   }
   m.NonNegative("dt", model.dt());
   m.NonNegative("solver_tolerance", model.solver_tolerance());
@@ -300,6 +327,7 @@ void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) 
   if (model.has_position_based() && model.position_based().iterations() < 0) {
     m.Child("position_based", model.position_based()).Fail("iterations", "must be >= 0");
   }
+  if (model.has_efg()) CheckEfg(m.Child("efg", model.efg()), model.efg());
   if (model.has_reduced_kl()) {  // the material is in the reduced model's file
     if (model.reduced_kl().file().empty()) {
       m.Child("reduced_kl", model.reduced_kl()).Fail("file", "is empty");

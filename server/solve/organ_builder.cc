@@ -35,6 +35,8 @@ const char* ModelName(const Model& model) {
       return "fem_hyperelastic";
     case Model::kReducedKl:
       return "reduced_kl";
+    case Model::kEfg:
+      return "efg";
     case Model::KIND_NOT_SET:
       break;
   }
@@ -90,6 +92,24 @@ models::fem::FemParameters FemParametersOf(const scene::Organ& organ) {
   if (organ.model().solver_max_iterations() > 0) {
     p.cg_max_iterations = organ.model().solver_max_iterations();
   }
+  return p;
+}
+
+// E, ν and ρ from the material (as the linear FEM takes them); the rest from model.efg, unset
+// fields keeping the model's defaults (efg_model.h).
+models::meshless::EfgParameters EfgParametersOf(const scene::Organ& organ) {
+  const scene::Material& m = organ.material();
+  const scene::Efg& e = organ.model().efg();
+  models::meshless::EfgParameters p;
+  p.youngs_modulus = m.youngs_modulus();
+  p.poisson_ratio = m.poisson_ratio();
+  p.density = m.density();
+  if (e.has_gauss_points()) p.gauss_points = e.gauss_points();
+  if (e.has_support_scale()) p.mls.support_scale = e.support_scale();
+  if (e.has_support_neighbours()) p.mls.support_neighbours = e.support_neighbours();
+  if (e.has_penalty_factor()) p.penalty_factor = e.penalty_factor();
+  if (e.has_rayleigh_mass()) p.rayleigh_mass = e.rayleigh_mass();
+  if (e.has_rayleigh_stiffness()) p.rayleigh_stiffness = e.rayleigh_stiffness();
   return p;
 }
 
@@ -316,7 +336,8 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
   out.field = "organ[" + std::to_string(index) + "]";
   out.model_name = ModelName(organ.model());
   const bool fem = scene::IsFemModel(organ.model());
-  const bool volume_model = fem || organ.model().has_reduced_kl();  // needs tetrahedra
+  const bool volume_model =  // needs tetrahedra
+      fem || organ.model().has_reduced_kl() || organ.model().has_efg();
   mesh::SurfaceMesh surface;
   if (organ.mesh_case() == scene::Organ::kBuiltin) {
     out.mesh_name = "builtin:" + organ.builtin();
@@ -330,7 +351,7 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
         throw lines.Error(
             out.field + ".builtin",
             std::string(spec->name) +
-                " is an open surface and bounds no volume: FEM and reduced models need "
+                " is an open surface and bounds no volume: FEM, EFG and reduced models need "
                 "tetrahedra (use a particle model)");
       }
       // A closed surface filled with tetrahedra (a new node numbering: see builtin_organs.h).
@@ -354,7 +375,7 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
       throw lines.Error(
           out.field + ".file",
           "\"" + organ.file() +
-              "\" holds no tetrahedra: FEM and reduced models need a volume mesh (fill a "
+              "\" holds no tetrahedra: FEM, EFG and reduced models need a volume mesh (fill a "
               "closed surface with: somasim-mesh tetrahedralize)");
     } else {
       surface.vertices = std::move(data.vertices);
@@ -381,6 +402,10 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
     if (fem) {
       auto model = models::fem::FemModel::FromTetMesh(out.volume, FemParametersOf(organ));
       out.fem = model.get();
+      out.model = std::move(model);
+    } else if (organ.model().has_efg()) {
+      auto model = models::meshless::EfgModel::FromTetMesh(out.volume, EfgParametersOf(organ));
+      out.efg = model.get();
       out.model = std::move(model);
     } else if (organ.model().has_reduced_kl()) {
       std::filesystem::path path(organ.model().reduced_kl().file());

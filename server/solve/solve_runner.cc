@@ -14,6 +14,7 @@ namespace somasim::solve {
 namespace {
 
 namespace fem = models::fem;
+namespace meshless = models::meshless;
 
 // One of the scene's loads on this organ, with its nodes.
 struct AppliedLoad {
@@ -34,6 +35,10 @@ struct OrganRun {
   mesh::Points forces;                // [N], 3 × n
   mesh::Points prescribed_positions;  // [m], 3 × prescribed
 };
+
+// The largest relative residual an EFG static solve may leave on the free nodes (when the scene
+// gives no solver_tolerance): a direct solve leaves ~1e-12; more means a badly conditioned system.
+constexpr double kEfgResidualTolerance = 1e-6;
 
 std::string LoadField(int index) { return "load[" + std::to_string(index) + "]"; }
 
@@ -203,6 +208,26 @@ fem::StaticLoads StaticLoadsOf(const scene::Scene& scene, OrganRun& run) {
   return l;
 }
 
+// The latest point of the organ's load histories: where the loads reach their final values (0
+// when none has a history).
+double LastHistoryTime(const OrganRun& run) {
+  double end = 0.0;
+  for (const AppliedLoad& l : run.loads) {
+    if (!l.load->history().empty()) {
+      end = std::max(end, l.load->history(l.load->history_size() - 1).t());
+    }
+  }
+  return end;
+}
+
+// The lumped node masses [kg] of a FEM or EFG organ (num_nodes), or null (particle and reduced
+// models: their reactions leave the weight out).
+const std::vector<double>* MassesOf(const BuiltOrgan& organ) {
+  if (organ.fem != nullptr) return &organ.fem->masses();
+  if (organ.efg != nullptr) return &organ.efg->masses();
+  return nullptr;
+}
+
 // When the outputs are written: the scene's times, or the end.
 std::vector<double> OutputTimes(const scene::Scene& scene, double end) {
   std::vector<double> t(scene.output().time().begin(), scene.output().time().end());
@@ -218,12 +243,7 @@ std::vector<double> OutputTimes(const scene::Scene& scene, double end) {
 // soft organ's lobe folding under its weight) converge this way.
 void RunStatic(const scene::Scene& scene, const SolveOptions& options, OrganRun& run,
                OrganSummary* s) {
-  double end = 0.0;  // the latest history point: where the loads reach their final values
-  for (const AppliedLoad& l : run.loads) {
-    if (!l.load->history().empty()) {
-      end = std::max(end, l.load->history(l.load->history_size() - 1).t());
-    }
-  }
+  const double end = LastHistoryTime(run);
   const auto state = run.organ.model->MakeState();
   fem::StaticLoads loads = StaticLoadsOf(scene, run);
   const Eigen::Vector3d gravity = loads.gravity;
@@ -283,6 +303,70 @@ void RunStatic(const scene::Scene& scene, const SolveOptions& options, OrganRun&
   history.Close(s->history_file);
 }
 
+// Static, EFG: the model is linear, so each output time is one solve (K + P) û = f̂ with the loads
+// at that time (no continuation; load_steps does not matter), counted as one Newton iteration.
+// Reactions: the supports' force on each held node, -(elastic + external forces + weight) there,
+// which is what the penalty springs exert; on the free nodes the same sum is the residual that
+// final_residual reports, relative to the loads and reactions.
+void RunStaticEfg(const scene::Scene& scene, const SolveOptions& options, OrganRun& run,
+                  OrganSummary* s) {
+  const meshless::EfgModel& efg = *run.organ.efg;
+  const auto state = efg.MakeState();
+  meshless::EfgStaticLoads loads;
+  loads.external_forces = &run.forces;
+  const scene::Vec3& g = scene.gravity();
+  loads.gravity = Eigen::Vector3d(g.x(), g.y(), g.z());
+  loads.fixed_nodes = run.organ.fixed_nodes;
+  loads.prescribed_nodes = run.prescribed;
+  loads.prescribed_positions = &run.prescribed_positions;
+  const double tolerance =
+      run.organ.solver_tolerance > 0.0 ? run.organ.solver_tolerance : kEfgResidualTolerance;
+  const mesh::Points& rest = run.organ.rest();
+  std::vector<char> held(static_cast<size_t>(rest.cols()), 0);
+  for (const int32_t i : run.organ.fixed_nodes) held[static_cast<size_t>(i)] = 1;
+  for (const int32_t i : run.prescribed) held[static_cast<size_t>(i)] = 1;
+  mesh::Points internal = mesh::Points::Zero(3, rest.cols());
+  mesh::Points reactions = mesh::Points::Zero(3, rest.cols());
+  History history(s->history_file, run);
+  const std::vector<double> times = OutputTimes(scene, LastHistoryTime(run));
+  for (size_t k = 0; k < times.size(); ++k) {
+    LoadsAt(times[k], &run);
+    try {
+      efg.SolveStatic(loads, state.get());
+    } catch (const std::runtime_error&) {  // not positive definite: too little held
+      s->converged = false;
+      break;
+    }
+    ++s->newton_iterations;
+    ++s->steps;
+    efg.InternalForces(*state, &internal);
+    double residual = 0.0, scale = 0.0;  // squared norms [N²]
+    for (Eigen::Index i = 0; i < rest.cols(); ++i) {
+      const Eigen::Vector3d load =
+          run.forces.col(i) + efg.masses()[static_cast<size_t>(i)] * loads.gravity;
+      const Eigen::Vector3d r = -(internal.col(i) + load);
+      scale += load.squaredNorm();
+      if (held[static_cast<size_t>(i)] != 0) {
+        reactions.col(i) = r;
+        scale += r.squaredNorm();
+      } else {
+        reactions.col(i).setZero();
+        residual += r.squaredNorm();
+      }
+    }
+    s->final_residual = scale > 0.0 ? std::sqrt(residual / scale) : 0.0;
+    if (!state->positions.allFinite() || !(s->final_residual <= tolerance)) s->converged = false;
+    history.Record(times[k], state->positions);
+    s->outputs.push_back(
+        {times[k], WriteOutput(options, run, static_cast<int>(k), state->positions, reactions),
+         MaxDisplacement(state->positions, rest)});
+    if (!s->converged) break;
+  }
+  s->max_displacement_m = MaxDisplacement(state->positions, rest);
+  s->reactions = SumReactions(run, reactions);
+  history.Close(s->history_file);
+}
+
 // Steps t = 0 → end by dt; `advance(t, dt)` takes one step and returns false to stop. Outputs
 // go to the step that ends nearest each output time.
 template <typename Advance, typename Reactions>
@@ -304,7 +388,9 @@ void RunSteps(const scene::Scene& scene, const SolveOptions& options, OrganRun& 
   for (int64_t step = 0; step < steps; ++step) {
     const double t0 = static_cast<double>(step) * dt;
     const double t1 = std::min(end, static_cast<double>(step + 1) * dt);
-    if (!advance(t0, t1 - t0)) break;
+    // The step is dt exactly but for a shorter last one: t1 - t0 differs from dt by rounding,
+    // and a model that keeps a factorisation per dt (efg) would factorise every step.
+    if (!advance(t0, step + 1 < steps ? dt : t1 - t0)) break;
     if ((step + 1) % every == 0 || step + 1 == steps) history.Record(t1, state.positions);
     while (next < times.size() && times[next] < t1 + 0.5 * dt) {
       s->outputs.push_back(
@@ -361,15 +447,15 @@ void RunDynamic(const scene::Scene& scene, const SolveOptions& options, OrganRun
   std::vector<char> held(static_cast<size_t>(internal.cols()), 0);
   for (const int32_t i : run.organ.fixed_nodes) held[static_cast<size_t>(i)] = 1;
   for (const int32_t i : run.prescribed) held[static_cast<size_t>(i)] = 1;
-  // The supports' force: -(internal + external) on the held nodes (+ their weight for FEM,
-  // whose masses are known); inertia and damping left out.
+  // The supports' force: -(internal + external) on the held nodes (+ their weight for FEM and
+  // EFG, whose masses are known); inertia and damping left out.
+  const std::vector<double>* masses = MassesOf(run.organ);
   const auto reactions = [&] {
     model.InternalForces(*state, &internal);
     mesh::Points r = -(internal + run.forces);
-    if (run.organ.fem != nullptr) {
-      const std::vector<double>& m = run.organ.fem->masses();
+    if (masses != nullptr) {
       for (Eigen::Index i = 0; i < r.cols(); ++i) {
-        r.col(i) -= m[static_cast<size_t>(i)] * inputs.gravity;
+        r.col(i) -= (*masses)[static_cast<size_t>(i)] * inputs.gravity;
       }
     }
     for (Eigen::Index i = 0; i < r.cols(); ++i) {
@@ -444,11 +530,17 @@ SolveSummary RunSolve(const scene::Scene& scene, const scene::SceneLines& lines,
   }
   for (int k = 0; k < scene.organ_size(); ++k) {
     OrganRun run = PrepareOrgan(scene, k, lines, options);
-    if (!analysis.has_dynamic() && run.organ.fem == nullptr) {
+    if (analysis.has_quasi_static() && run.organ.efg != nullptr) {
+      throw lines.Error(run.organ.field + ".model",
+                        "a quasi_static analysis needs a FEM model: efg is elastic (it has no "
+                        "creep), so its equilibria come from static_solve with output times, "
+                        "its motion from a dynamic analysis");
+    }
+    if (!analysis.has_dynamic() && run.organ.fem == nullptr && run.organ.efg == nullptr) {
       throw lines.Error(run.organ.field + ".model",
                         "a " + summary.analysis + " analysis needs a FEM model (fem_linear, " +
-                            "fem_corotational or fem_hyperelastic); " + run.organ.model_name +
-                            " runs in a dynamic analysis");
+                            "fem_corotational or fem_hyperelastic) or efg; " +
+                            run.organ.model_name + " runs in a dynamic analysis");
     }
     if (!analysis.has_dynamic()) {
       std::vector<int32_t> held = run.organ.fixed_nodes;
@@ -472,7 +564,11 @@ SolveSummary RunSolve(const scene::Scene& scene, const scene::SceneLines& lines,
     }
     switch (analysis.kind_case()) {
       case scene::Analysis::kStaticSolve:
-        RunStatic(scene, options, run, &s);
+        if (o.efg != nullptr) {
+          RunStaticEfg(scene, options, run, &s);
+        } else {
+          RunStatic(scene, options, run, &s);
+        }
         break;
       case scene::Analysis::kQuasiStatic:
         RunQuasiStatic(scene, options, run, &s);

@@ -284,6 +284,58 @@ TEST(Scene, ReductionPlansAndReducedOrgansAreChecked) {
                 "organ[0].model.reduced_kl.file", "is empty");
 }
 
+// The EFG model (efg): its settings are optional (unset: the model's defaults), checked when
+// given; E, ν and ρ come from the material, whose FEM damping fields it refuses (its damping is
+// in model.efg). The repository's EFG scene loads.
+TEST(Scene, EfgModelSettingsAreChecked) {
+  const Scene file =
+      LoadSceneFile(std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/liver288_efg.scene.txtpb");
+  EXPECT_TRUE(file.organ(0).model().has_efg());
+  EXPECT_FALSE(file.organ(0).model().efg().has_gauss_points());
+  const std::string head =
+      "format_version: 1\norgan {\n  id: \"o\"\n  builtin: \"liver288\"\n";  // lines 1-4
+  const auto scene = [&](const std::string& efg, const std::string& material) {
+    return head + "  model { efg { " + efg + " } }\n" +                                // line 5
+           "  material { density: 1055 youngs_modulus: 5000 " + material + " }\n}\n";  // 6
+  };
+  const Scene good = ParseScene(scene("gauss_points: 14 support_scale: 2.5 support_neighbours: 6 "
+                                      "penalty_factor: 1e4 rayleigh_mass: 0 rayleigh_stiffness: 0",
+                                      "poisson_ratio: 0.35"),
+                                "s");
+  const Efg& efg = good.organ(0).model().efg();
+  EXPECT_EQ(efg.gauss_points(), 14);
+  EXPECT_DOUBLE_EQ(efg.support_scale(), 2.5);
+  EXPECT_EQ(efg.support_neighbours(), 6);
+  EXPECT_DOUBLE_EQ(efg.penalty_factor(), 1e4);
+  EXPECT_TRUE(efg.has_rayleigh_mass());  // 0 given: no mass damping, not the default
+  EXPECT_DOUBLE_EQ(efg.rayleigh_mass(), 0.0);
+  const std::string nu = "poisson_ratio: 0.35";
+  ExpectRefused(scene("gauss_points: 5", nu), 5, "organ[0].model.efg.gauss_points", "4 or 14");
+  ExpectRefused(scene("gauss_points: 0", nu), 5, "organ[0].model.efg.gauss_points", "4 or 14");
+  ExpectRefused(scene("support_scale: 0.5", nu), 5, "organ[0].model.efg.support_scale", ">= 1");
+  ExpectRefused(scene("support_scale: inf", nu), 5, "organ[0].model.efg.support_scale", "finite");
+  ExpectRefused(scene("support_neighbours: 0", nu), 5, "organ[0].model.efg.support_neighbours",
+                "1..64");
+  ExpectRefused(scene("support_neighbours: 65", nu), 5, "organ[0].model.efg.support_neighbours",
+                "1..64");
+  ExpectRefused(scene("penalty_factor: 0", nu), 5, "organ[0].model.efg.penalty_factor", "> 0");
+  ExpectRefused(scene("penalty_factor: nan", nu), 5, "organ[0].model.efg.penalty_factor", "finite");
+  ExpectRefused(scene("rayleigh_mass: -1", nu), 5, "organ[0].model.efg.rayleigh_mass", ">= 0");
+  ExpectRefused(scene("rayleigh_stiffness: nan", nu), 5, "organ[0].model.efg.rayleigh_stiffness",
+                "finite");
+  // The material: ν in (-1, 0.5) as for FEM; no FEM damping, no QLV terms.
+  ExpectRefused(scene("", "poisson_ratio: 0.5"), 6, "organ[0].material.poisson_ratio", "(-1, 0.5)");
+  ExpectRefused(scene("", "poisson_ratio: nan"), 6, "organ[0].material.poisson_ratio", "(-1, 0.5)");
+  ExpectRefused(scene("", "poisson_ratio: 0.35 rayleigh_mass: 0.5"), 6,
+                "organ[0].material.rayleigh_mass", "model.efg.rayleigh_mass");
+  ExpectRefused(scene("", "poisson_ratio: 0.35 rayleigh_stiffness: 0.001"), 6,
+                "organ[0].material.rayleigh_stiffness", "model.efg.rayleigh_stiffness");
+  ExpectRefused(scene("", "poisson_ratio: 0.35 prony { gamma: 0.5 tau: 1 }"), 6,
+                "organ[0].material", "FEM model");
+  ExpectRefused(head + "  model { efg {} }\n  material { density: 1055 poisson_ratio: 0.35 }\n}\n",
+                6, "organ[0].material.youngs_modulus", "> 0");
+}
+
 TEST(SceneLines, NameTheLineOfAFieldOrOfItsNearestParent) {
   SceneLines lines;
   ParseScene(kGood, "good.scene.txtpb", &lines);

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 
@@ -131,6 +132,63 @@ TEST(Session, GraspingAndPullingLiftsTheTissueAndReleaseLetsGo) {
   }
   EXPECT_TRUE(released);
   EXPECT_FALSE(session.tool(g).force_model.grasping);
+}
+
+// Seed 001's liver on the EFG model (tests/data/scenes/liver288_efg.scene.txtpb) runs like a FEM
+// organ: the probe pressing its top meets it, moves it, and gets a pushing force model from the
+// model's LocalStiffness (no FemCompliance: that is the FEM's); the organ cannot be cut.
+TEST(Session, AnEfgOrganIsPressedByTheProbeAndGivesAForceModel) {
+  scene::SceneLines lines;
+  const scene::Scene s = scene::LoadSceneFile(
+      std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/liver288_efg.scene.txtpb", &lines);
+  Session session(s, lines, ".");
+  ASSERT_EQ(session.num_organs(), 1);
+  const SessionOrgan& o = session.organ(0);
+  EXPECT_EQ(o.built.model_name, "efg");
+  ASSERT_NE(o.built.efg, nullptr);
+  EXPECT_EQ(o.compliance, nullptr);
+  EXPECT_EQ(o.cutter, nullptr);
+  EXPECT_DOUBLE_EQ(session.dt(), 0.001);
+  const Eigen::Vector3d top = TopOf(session, 0);
+  const mesh::Points rest = o.state->positions;
+  double slowest = 0.0;            // [s] the slowest step, reported
+  int slow = 0;                    // steps over 5 ms (the model factorised again), reported
+  std::vector<double> in_contact;  // [s] the other steps in contact, reported
+  for (int i = 0; i <= 200; ++i) {
+    // From 2 mm above to 4 mm below the top over 0.2 s.
+    const double depth = -0.002 + 0.006 * i / 200.0;
+    session.SetToolCommand(0, At(top - depth * Eigen::Vector3d::UnitZ(), 1.0, 1 + i));
+    const auto start = std::chrono::steady_clock::now();
+    session.Step();
+    const double took =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    slowest = std::max(slowest, took);
+    slow += took > 0.005 ? 1 : 0;
+    if (took <= 0.005 && session.tool(0).force_model.in_contact) {
+      in_contact.push_back(took);
+    }
+  }
+  std::sort(in_contact.begin(), in_contact.end());
+  std::printf(
+      "EFG liver288 pressed 4 mm in 201 steps: slowest %.1f ms, %d over 5 ms; median step in "
+      "contact %.0f us\n",
+      1e3 * slowest, slow, in_contact.empty() ? 0.0 : 1e6 * in_contact[in_contact.size() / 2]);
+  EXPECT_EQ(session.rejected_steps(), 0u);
+  const contact::LocalForceModel& m = session.tool(0).force_model;
+  EXPECT_TRUE(m.in_contact);
+  EXPECT_EQ(session.tool(0).force_organ, 0);
+  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+      m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
+  EXPECT_GT(f.force.z(), 0.1);  // the tissue pushes the probe up [N]
+  EXPECT_GT((o.state->positions - rest).colwise().norm().maxCoeff(), 1e-3);  // pressed in [m]
+  // The contact's corner springs share K_t equally (not by the proxy's barycentric weights, which
+  // change every tick and would make the model factorise again every tick).
+  ASSERT_GT(o.num_attachments, 0);
+  const double kt = contact::ContactSettings{}.tool_stiffness;
+  for (int32_t a = 0; a < o.num_attachments; ++a) {
+    EXPECT_EQ(o.attachments[static_cast<size_t>(a)].stiffness,
+              kt / static_cast<double>(o.num_attachments));
+  }
 }
 
 TEST(Session, StepAllocatesNothing) {

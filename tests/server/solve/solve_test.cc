@@ -169,6 +169,91 @@ TEST(SolveStatic, DefaultSceneOfABuiltinOrganHangsItsWeightOnTheSupport) {
   EXPECT_TRUE(std::filesystem::exists(dir + "/kidney424_0.vtu"));
 }
 
+// The EFG model (efg) in a static analysis: one linear solve per output time. The bar's stretch
+// with ν = 0 is a linear field, which MLS reproduces: only the quadrature (the patch test's
+// error, efg_model_test) and the penalty supports stand between it and δ x / L.
+TEST(SolveStaticEfg, StretchedBarIsNearlyHomogeneousAndTheSupportsBalance) {
+  const std::string dir = testing::MakeTempDir("solve_efg_bar");
+  WriteBar(dir + "/bar.vtu", Identity(BarNodes()), mesh_io::Unit::kMetre);
+  const SolveSummary s = Solve(
+      dir,
+      Scene(testing::Replace(testing::Replace(kBarStretch, "UNIT", "m"), "fem_linear", "efg")));
+  ASSERT_EQ(s.organs.size(), 1u);
+  const OrganSummary& o = s.organs[0];
+  EXPECT_EQ(o.model, "efg");
+  EXPECT_TRUE(s.converged);
+  EXPECT_EQ(o.newton_iterations, 1);
+  EXPECT_LT(o.final_residual, 1e-9);
+  EXPECT_NEAR(s.max_displacement_m, 0.001, 1e-5);
+  const VtuArrays vtu = ReadVtu(o.outputs.at(0).file, "displacement");
+  ASSERT_EQ(vtu.values.size(), 3 * static_cast<size_t>(BarNodes()));
+  for (size_t i = 0; i < vtu.values.size() / 3; ++i) {
+    EXPECT_NEAR(vtu.values[3 * i], 0.001 * vtu.points[3 * i] / kLength, 2e-5) << i;
+    EXPECT_NEAR(vtu.values[3 * i + 1], 0.0, 2e-5) << i;
+    EXPECT_NEAR(vtu.values[3 * i + 2], 0.0, 2e-5) << i;
+  }
+  const double pull = 1e4 * kWidth * kWidth * 0.001 / kLength;  // E A δ / L [N]
+  ASSERT_EQ(o.reactions.size(), 2u);
+  EXPECT_NEAR(o.reactions[0].force.x(), -pull, 0.02 * pull);
+  EXPECT_NEAR(o.reactions[1].force.x(), pull, 0.02 * pull);
+  // Nothing else loads the bar: the supports balance each other exactly.
+  EXPECT_LT((o.reactions[0].force + o.reactions[1].force).norm(), 1e-9 * pull);
+}
+
+// Seed 001's liver (tests/data/scenes/liver288_efg.scene.txtpb's organ): its weight is carried by
+// the underside, all of it (Σ m_I g, the lumped masses); and the model is linear, so a force
+// ramped by its history gives half the displacement at half the ramp, with the supports pulling
+// back the force.
+TEST(SolveStaticEfg, Liver288CarriesItsWeightAndRespondsLinearlyToARampedForce) {
+  const std::string dir = testing::MakeTempDir("solve_efg_liver");
+  const std::string organ = R"(
+organ {
+  id: "liver"
+  builtin: "liver288"
+  model { efg {} }
+  material { density: 1055 youngs_modulus: 5000 poisson_ratio: 0.35 }
+  fixed { box { min { x: -1 y: -1 z: -1 } max { x: 1 y: 1 z: -0.033 } } }
+}
+analysis { static_solve {} }
+)";
+  const SolveSummary weight = Solve(dir, Scene(organ + "gravity { z: -9.81 }\n"));
+  const scene::Scene parsed = scene::ParseScene(Scene(organ), "liver");
+  const BuiltOrgan built = BuildOrgan(parsed, 0, scene::SceneLines("liver"), dir);
+  ASSERT_NE(built.efg, nullptr);
+  EXPECT_EQ(built.fem, nullptr);
+  double mass = 0.0;
+  for (const double m : built.efg->masses()) mass += m;
+  EXPECT_NEAR(mass, 1055.0 * mesh::TetMeshVolume(built.volume), 1e-9 * mass);
+  const OrganSummary& w = weight.organs.at(0);
+  EXPECT_TRUE(weight.converged);
+  ASSERT_EQ(w.reactions.size(), 1u);
+  EXPECT_NEAR(w.reactions[0].force.z(), 9.81 * mass, 1e-9 * 9.81 * mass);
+  EXPECT_NEAR(w.reactions[0].force.head<2>().norm(), 0.0, 1e-9 * 9.81 * mass);
+  EXPECT_GT(w.max_displacement_m, 0.0);
+
+  const SolveSummary ramp =
+      Solve(dir, Scene(organ + "load { organ: \"liver\" region { sphere { center { x: 0 y: 0 z: "
+                               "0.06 } radius: 0.012 } } force { z: -1 }\n"
+                               "  history { t: 0 scale: 0 } history { t: 1 scale: 1 } }\n"
+                               "output { time: 0.5 time: 1 }\n"));
+  const OrganSummary& r = ramp.organs.at(0);
+  EXPECT_TRUE(ramp.converged);
+  EXPECT_EQ(r.newton_iterations, 2);  // one solve per output time
+  ASSERT_EQ(r.outputs.size(), 2u);
+  EXPECT_GT(r.outputs[1].max_displacement_m, 1e-4);
+  EXPECT_NEAR(r.outputs[0].max_displacement_m, 0.5 * r.outputs[1].max_displacement_m,
+              1e-9 * r.outputs[1].max_displacement_m);
+  const VtuArrays half = ReadVtu(r.outputs[0].file, "displacement");
+  const VtuArrays full = ReadVtu(r.outputs[1].file, "displacement");
+  ASSERT_EQ(half.values.size(), full.values.size());
+  for (size_t i = 0; i < full.values.size(); ++i) {
+    EXPECT_NEAR(half.values[i], 0.5 * full.values[i], 1e-12) << i;
+  }
+  ASSERT_EQ(r.reactions.size(), 1u);
+  EXPECT_NEAR(r.reactions[0].force.z(), 1.0, 1e-9);
+  EXPECT_NEAR(r.reactions[0].force.head<2>().norm(), 0.0, 1e-9);
+}
+
 // A bar pulled by a constant force: with G(t) = 0.5 + 0.5 e^{-t/τ} (τ = 1 s) the creep is that
 // of a standard linear solid, u(t) = u_e (2 - e^{-t/(2τ)}), u_e the response with the
 // instantaneous modulus (an elastic static solve).
@@ -243,6 +328,25 @@ TEST(SolveDynamic, FemSettlesTowardsTheStaticSolution) {
               0.02 * statics.max_displacement_m);
 }
 
+// The EFG model in a dynamic analysis (its own Step, implicit Euler) settles, overdamped, on the
+// static solution.
+TEST(SolveDynamic, EfgSettlesTowardsTheStaticSolution) {
+  scene::Scene s = scene::DefaultScene("plate192");
+  scene::Organ& organ = *s.mutable_organ(0);
+  organ.mutable_model()->clear_kind();
+  organ.mutable_model()->mutable_efg()->set_rayleigh_mass(30.0);  // [1/s], overdamped
+  const SolveSummary statics = RunSolve(s, scene::SceneLines("p"), {});
+  EXPECT_EQ(statics.organs.at(0).model, "efg");
+  organ.mutable_model()->set_dt(0.01);
+  s.mutable_analysis()->mutable_dynamic()->set_end_time(3.0);
+  const SolveSummary dynamics = RunSolve(s, scene::SceneLines("p"), {});
+  EXPECT_TRUE(dynamics.converged);
+  EXPECT_EQ(dynamics.organs.at(0).steps, 300);
+  EXPECT_GT(statics.max_displacement_m, 0.0);
+  EXPECT_NEAR(dynamics.max_displacement_m, statics.max_displacement_m,
+              0.02 * statics.max_displacement_m);
+}
+
 // Faults only the mesh reveals: each names the field and the line of the scene.
 struct Fault {
   const char* scene;
@@ -295,6 +399,23 @@ TEST(SolveFaults, NamedByFieldAndLine) {
        " material { density: 1 youngs_modulus: 1 poisson_ratio: 0.3 }\n}\n"
        "analysis { static_solve {} }\n",
        "open surface"},
+      {"organ {\n id: \"s\"\n file: \"skin.obj\"\n model { efg {} }\n"
+       " material { density: 1 youngs_modulus: 1 poisson_ratio: 0.3 }\n}\n"
+       "analysis { static_solve {} }\n",
+       "FEM, EFG and reduced models need a volume mesh"},
+      {"organ {\n id: \"s\"\n builtin: \"tissue45\"\n model { efg {} }\n"
+       " material { density: 1 youngs_modulus: 1 poisson_ratio: 0.3 }\n}\n"
+       "analysis { dynamic { end_time: 1 } }\n",
+       "open surface"},
+      {"organ {\n id: \"s\"\n builtin: \"plate192\"\n model { efg {} }\n"
+       " material { density: 1 youngs_modulus: 1 poisson_ratio: 0.3 }\n"
+       " fixed { nodes { id: [0, 1, 2, 3] } }\n}\n"
+       "analysis { quasi_static { end_time: 1 dt: 0.1 } }\n",
+       "efg is elastic"},
+      {"organ {\n id: \"s\"\n file: \"bar.vtu\"\n model { efg { support_neighbours: 50 } }\n"
+       " material { density: 1 youngs_modulus: 1 poisson_ratio: 0.3 }\n}\n"
+       "analysis { dynamic { end_time: 1 } }\n",
+       "support_neighbours must lie in 1..64 and be < the number of nodes"},  // 45 nodes
       {"organ {\n id: \"s\"\n builtin: \"plate192\"\n model { molecular {} }\n"
        " material { density: 1 youngs_modulus: 1 }\n}\nanalysis { dynamic { end_time: 1 } }\n",
        "surface mesh"},
