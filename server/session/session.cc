@@ -48,20 +48,6 @@ int32_t AttachmentCapacity(int32_t num_tools, const contact::ContactSettings& se
   return num_tools * (3 + settings.grasp.max_nodes) + num_rigid * 3 * rigid.max_tissue_contacts;
 }
 
-// The EFG model factorises its system again whenever a node's spring stiffness changes
-// (efg_model.h; ~20–40 ms on liver288), and a tool contact's corner springs, w_i K_t, change with
-// the proxy's barycentric weights w_i every tick. For it the corners share the springs' total
-// stiffness equally (same targets): at the step's start they still push with K_t (x_device -
-// x_proxy), applied at the corners' centroid rather than at the proxy, and the stiffness changes
-// only when the touched triangle does. (K_t itself, not Σ w_i K_t, whose rounding would differ
-// from tick to tick.)
-void EqualiseContactSprings(std::span<models::Attachment> springs, double tool_stiffness) {
-  if (springs.empty()) return;
-  for (models::Attachment& a : springs) {
-    a.stiffness = tool_stiffness / static_cast<double>(springs.size());
-  }
-}
-
 }  // namespace
 
 contact::ToolShape ToolShapeOf(const scene::Tool& tool) {
@@ -279,13 +265,7 @@ void Session::StepOrgan(int32_t k) {
       continue;
     }
     c.Update(tool->command.pose, *o.surface, x);
-    const int32_t first = o.num_attachments;
     append(c.attachments());
-    if (o.built.efg != nullptr && c.proxy().in_contact() && !c.grasp().holding()) {
-      EqualiseContactSprings(
-          {o.attachments.data() + first, static_cast<size_t>(o.num_attachments - first)},
-          c.settings().tool_stiffness);
-    }
   }
   for (auto& r : rigid_) {
     if (r->organ != k) continue;

@@ -8,9 +8,7 @@
 // advances when its own time falls behind the session's (organs at 1 ms and 10 ms coexist).
 // Tools act on every organ: one contact (god-object proxy and grasp) per tool and organ. The
 // local force model of a tool comes from the organ it grasps, else the one it touches (the
-// first in the scene's order), else says "no contact". On an EFG organ a tool contact's corner
-// springs share the proxy spring's stiffness equally (the model factorises again whenever a
-// spring's stiffness changes; the barycentric shares change every tick: see session.cc).
+// first in the scene's order), else says "no contact".
 // A step a model rejects (it diverged: SPEC §7) leaves the organ at its last good state, at rest
 // (velocities zeroed, so the next step does not repeat the divergence), and is reported.
 // A scalpel with its cut button held (kCutButton) cuts: each tick its blade's sweep since the

@@ -3,12 +3,25 @@
 //   BM_EfgStep/<organ>  liver288 (seed 001's node count) and liver4055, E = 5000 Pa, ν = 0.35,
 //                       ρ = 1055 kg/m³ (EfgParameters' defaults), gravity, the nodes within 10 %
 //                       of the length from one end fixed, 0.5 N along z on the top node.
+//   BM_EfgGraspStep/liver288[/full]  the same, plus a grasp of the 4 highest nodes (1000 N/m
+//                       shared equally, GraspSettings' default) whose targets move every step
+//                       (a 1 mm circle, period 0.1 s), and LocalStiffness at the first held node
+//                       as the session asks it every tick. /full: max_low_rank_nodes = 0, the
+//                       path before the low-rank update (A factorised with the grasp inside; a
+//                       constant stiffness costs no factorisation there either).
+//   BM_EfgContactStep/liver288[/full]  a probe contact instead: 3 corner springs whose
+//                       barycentric shares of 1000 N/m change every step (/full re-factorises
+//                       every step).
 // The factorisation (first step) is outside the timed loop and reported as a counter, with the
-// model's construction (MLS, Gauss points, assembly) and its size.
+// model's construction (MLS, Gauss points, assembly), its size and the factorisations made
+// inside the loop per step.
 #include <benchmark/benchmark.h>
 
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <memory>
+#include <numbers>
 #include <string>
 #include <vector>
 
@@ -22,11 +35,15 @@ double SecondsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
-void EfgSteps(benchmark::State& bench, const std::string& organ) {
+enum class Tool { kNone, kGrasp, kContact };
+
+void EfgSteps(benchmark::State& bench, const std::string& organ, Tool tool, bool full) {
   const mesh_gen::BuiltinOrgan built = mesh_gen::GenerateBuiltinOrgan(organ);
   const mesh::Points& x = built.volume.vertices;
+  EfgParameters parameters;
+  if (full) parameters.max_low_rank_nodes = 0;
   const auto build_start = std::chrono::steady_clock::now();
-  const auto model = EfgModel::FromTetMesh(built.volume, EfgParameters{});
+  const auto model = EfgModel::FromTetMesh(built.volume, parameters);
   const double build_seconds = SecondsSince(build_start);
   const auto state = model->MakeState();
   const double lo = x.row(0).minCoeff(), hi = x.row(0).maxCoeff();
@@ -43,24 +60,62 @@ void EfgSteps(benchmark::State& bench, const std::string& organ) {
   inputs.gravity = Eigen::Vector3d(0.0, 0.0, -9.81);
   inputs.external_forces = &forces;
   inputs.fixed_nodes = fixed;
+  // The tool's springs on the highest nodes.
+  std::vector<int32_t> highest(static_cast<size_t>(x.cols()));
+  for (size_t i = 0; i < highest.size(); ++i) highest[i] = static_cast<int32_t>(i);
+  std::stable_sort(highest.begin(), highest.end(),
+                   [&](int32_t a, int32_t b) { return x(2, a) > x(2, b); });
+  std::vector<Attachment> springs(tool == Tool::kGrasp ? 4 : tool == Tool::kContact ? 3 : 0);
+  int step = 0;
+  const auto move_tool = [&] {
+    const double phase = 2.0 * std::numbers::pi * step / 100.0;
+    const Eigen::Vector3d offset(1e-3 * std::cos(phase), 1e-3 * std::sin(phase), 1e-3);
+    for (size_t k = 0; k < springs.size(); ++k) {
+      const int32_t node = highest[k];
+      const double share =
+          tool == Tool::kGrasp ? 0.25 : (1.0 + 0.5 * std::sin(phase + 2.1 * double(k))) / 3.0;
+      springs[k] = {node, x.col(node) + offset, 1000.0 * share};  // [N/m], [m]
+    }
+    inputs.attachments = springs;
+    ++step;
+  };
+  move_tool();
   const auto factor_start = std::chrono::steady_clock::now();
   model->Step(inputs, state.get());  // factorises
   const double factor_seconds = SecondsSince(factor_start);
+  const int64_t factorised = model->Factorisations(*state);
   for (auto _ : bench) {
+    move_tool();
     benchmark::DoNotOptimize(model->Step(inputs, state.get()));
+    if (tool != Tool::kNone) benchmark::DoNotOptimize(model->LocalStiffness(*state, highest[0]));
   }
   bench.counters["nodes"] = model->num_nodes();
   bench.counters["gauss_points"] = static_cast<double>(model->num_gauss_points());
   bench.counters["stiffness_blocks"] = static_cast<double>(model->stiffness_blocks());
   bench.counters["build_s"] = build_seconds;
   bench.counters["first_step_s"] = factor_seconds;
+  bench.counters["factorisations_per_step"] =
+      static_cast<double>(model->Factorisations(*state) - factorised) /
+      static_cast<double>(std::max<int64_t>(bench.iterations(), 1));
 }
 
-BENCHMARK_CAPTURE(EfgSteps, liver288, std::string("liver288"))
+BENCHMARK_CAPTURE(EfgSteps, liver288, std::string("liver288"), Tool::kNone, false)
     ->Name("BM_EfgStep/liver288")
     ->Unit(benchmark::kMillisecond);
-BENCHMARK_CAPTURE(EfgSteps, liver4055, std::string("liver4055"))
+BENCHMARK_CAPTURE(EfgSteps, liver4055, std::string("liver4055"), Tool::kNone, false)
     ->Name("BM_EfgStep/liver4055")
+    ->Unit(benchmark::kMillisecond);
+BENCHMARK_CAPTURE(EfgSteps, grasp288, std::string("liver288"), Tool::kGrasp, false)
+    ->Name("BM_EfgGraspStep/liver288")
+    ->Unit(benchmark::kMillisecond);
+BENCHMARK_CAPTURE(EfgSteps, grasp288_full, std::string("liver288"), Tool::kGrasp, true)
+    ->Name("BM_EfgGraspStep/liver288/full")
+    ->Unit(benchmark::kMillisecond);
+BENCHMARK_CAPTURE(EfgSteps, contact288, std::string("liver288"), Tool::kContact, false)
+    ->Name("BM_EfgContactStep/liver288")
+    ->Unit(benchmark::kMillisecond);
+BENCHMARK_CAPTURE(EfgSteps, contact288_full, std::string("liver288"), Tool::kContact, true)
+    ->Name("BM_EfgContactStep/liver288/full")
     ->Unit(benchmark::kMillisecond);
 
 }  // namespace

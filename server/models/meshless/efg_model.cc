@@ -46,6 +46,44 @@ void CheckParameters(const EfgParameters& p) {
   if (p.gauss_points != 4 && p.gauss_points != 14) Refuse("gauss_points must be 4 or 14");
   finite_positive(p.penalty_factor, "penalty_factor");
   finite_positive(p.speed_limit, "speed_limit [m/s]");
+  if (!(p.max_low_rank_nodes >= 0 && p.max_low_rank_nodes <= EfgParameters::kMaxLowRankNodes)) {
+    Refuse("max_low_rank_nodes must lie in 0.." + std::to_string(EfgParameters::kMaxLowRankNodes));
+  }
+}
+
+// In-place Cholesky L Lᵀ of the n × n lower triangle of a column-major matrix `a` (leading
+// dimension ld), left-looking by columns (contiguous inner loops): the 3m × 3m system of the
+// attachments' update. By hand rather than Eigen's blocked LLT, whose products may take heap
+// workspace. False when a pivot is not positive.
+bool CholeskyInPlace(double* a, int n, int ld) {
+  for (int j = 0; j < n; ++j) {
+    double* col_j = a + static_cast<ptrdiff_t>(j) * ld;
+    for (int k = 0; k < j; ++k) {
+      const double* col_k = a + static_cast<ptrdiff_t>(k) * ld;
+      const double l_jk = col_k[j];
+      for (int i = j; i < n; ++i) col_j[i] -= l_jk * col_k[i];
+    }
+    if (!(col_j[j] > 0.0)) return false;
+    const double pivot = std::sqrt(col_j[j]);
+    col_j[j] = pivot;
+    for (int i = j + 1; i < n; ++i) col_j[i] /= pivot;
+  }
+  return true;
+}
+
+// x = (L Lᵀ)⁻¹ x in place, L from CholeskyInPlace.
+void CholeskySolveInPlace(const double* l, int n, int ld, double* x) {
+  for (int j = 0; j < n; ++j) {  // L y = x, by columns
+    const double* col = l + static_cast<ptrdiff_t>(j) * ld;
+    x[j] /= col[j];
+    for (int i = j + 1; i < n; ++i) x[i] -= col[i] * x[j];
+  }
+  for (int j = n - 1; j >= 0; --j) {  // Lᵀ x = y, by rows of Lᵀ (columns of L)
+    const double* col = l + static_cast<ptrdiff_t>(j) * ld;
+    double sum = x[j];
+    for (int i = j + 1; i < n; ++i) sum -= col[i] * x[i];
+    x[j] = sum / col[j];
+  }
 }
 
 // A symmetric Gauss rule on a tetrahedron: barycentric points (4 each) and weights summing to 1
@@ -103,7 +141,8 @@ struct EfgModel::Factors {
 namespace {
 
 // The state of an EFG model: the nodal parameters (the truth; positions are derived), the
-// cache of the step's factorisation, and every buffer a step needs, sized by MakeState.
+// caches of the step's factorisation and of the attachments' low-rank update, and every buffer
+// a step needs, sized by MakeState.
 class EfgState final : public TissueState {
  public:
   mesh::Points params, vparams;                // û [m], v̂ [m/s], 3 × num_nodes
@@ -112,15 +151,41 @@ class EfgState final : public TissueState {
   mesh::Points springs;                        // Σ k (target - X) per node [N], 3 × num_nodes
   mesh::Points anchor;                         // [m] where each fixed node is held
   std::vector<uint8_t> fixed_now, fixed_prev;  // num_nodes
-  std::vector<double> stiffness;               // s_I [N/m], num_nodes: this step's
-  std::vector<double> cached_stiffness;        // the s_I the factor was made with
+  std::vector<double> support;                 // the supports' s_I [N/m], num_nodes: this step's
+  std::vector<double> stiffness;               // all springs' s_I [N/m], num_nodes: this step's
+  // This step's distinct attached nodes with a summed stiffness k > 0, in order of first
+  // appearance: node and k [N/m] (num_attached of num_nodes used), and per node the summed k
+  // while the step gathers them (num_nodes; zero between steps).
+  std::vector<int32_t> attached_nodes;
+  std::vector<double> attached_stiffness, attached_sum;
+  int32_t num_attached = 0;
+  std::vector<double> cached_stiffness;  // the s_I the step's factor was made with, num_nodes
+  std::vector<double> cached_support;    // the s_I the static factor was made with, num_nodes
   double cached_dt = 0.0;
   bool factor_valid = false;
-  bool static_valid = false;     // static_factor holds K + P (P non-zero)
+  bool static_current = false;   // static_factor (or its absence) matches cached_support
+  bool static_valid = false;     // static_factor holds K + P_s (P_s non-zero)
+  int64_t factorisations = 0;    // numeric factorisations, both factors
   std::vector<double> a_blocks;  // 9 × blocks: a system's blocks before the scalar gather
   fem::LowerCsc system;          // the model's scalar pattern, values per factorisation
   std::unique_ptr<fem::SparseCholesky> factor, static_factor;
-  mutable std::vector<double> local_rhs, local_solution;  // LocalStiffness scratch, 3 N
+  // The low-rank slots (capacity c = max_low_rank_nodes), valid while the step's factor holds
+  // A0: slot s holds node slot_node[s] (-1: free) with Z's columns 3s..3s+2 and G's rows and
+  // columns 3s..3s+2; slot_of_node maps back (num_nodes, -1: none); slot_stamp[s] the last step
+  // (stamp) that used it.
+  Eigen::MatrixXd z;                                            // A0⁻¹ U, 3N × 3c
+  Eigen::MatrixXd gram;                                         // Uᵀ A0⁻¹ U, 3c × 3c
+  std::vector<int32_t> slot_node, slot_of_node, attached_slot;  // c, num_nodes, c
+  std::vector<int64_t> slot_stamp;                              // c
+  int64_t stamp = 0;
+  Eigen::MatrixXd small;         // I + W G W for this step's nodes (leading 3m × 3m), 3c × 3c
+  Eigen::VectorXd small_rhs;     // 3c
+  std::vector<double> unit_rhs;  // Φ_Iᵀ e_k, zero between uses, 3N
+  // LocalStiffness: scratch (3N each) and its per-node cache (9 × num_nodes, column-major
+  // 3 × 3 blocks; valid flags, num_nodes), cleared when the static factor changes.
+  mutable std::vector<double> local_rhs, local_solution;
+  mutable std::vector<double> local_stiffness;
+  mutable std::vector<uint8_t> local_valid;
 
  protected:
   void SaveGood() override {
@@ -157,6 +222,7 @@ std::unique_ptr<EfgModel> EfgModel::FromTetMesh(const mesh::TetMesh& mesh,
   model->rayleigh_mass_ = parameters.rayleigh_mass;
   model->rayleigh_stiffness_ = parameters.rayleigh_stiffness;
   model->set_speed_limit(parameters.speed_limit);
+  model->max_low_rank_nodes_ = parameters.max_low_rank_nodes;
 
   // Tetrahedra: indices, volumes (positive), lumped masses ρV/4 per corner, longest edges.
   std::vector<double> volume(static_cast<size_t>(num_tets));
@@ -371,8 +437,23 @@ std::unique_ptr<TissueState> EfgModel::MakeState() const {
   state->anchor = rest_;
   state->fixed_now.assign(size_t(n), 0);
   state->fixed_prev.assign(size_t(n), 0);
+  state->support.assign(size_t(n), 0.0);
   state->stiffness.assign(size_t(n), 0.0);
+  state->attached_nodes.assign(size_t(n), 0);
+  state->attached_stiffness.assign(size_t(n), 0.0);
+  state->attached_sum.assign(size_t(n), 0.0);
   state->cached_stiffness.assign(size_t(n), 0.0);
+  state->cached_support.assign(size_t(n), 0.0);
+  const auto slots = static_cast<Eigen::Index>(max_low_rank_nodes_);
+  state->z = Eigen::MatrixXd::Zero(3 * n, 3 * slots);
+  state->gram = Eigen::MatrixXd::Zero(3 * slots, 3 * slots);
+  state->small = Eigen::MatrixXd::Zero(3 * slots, 3 * slots);
+  state->small_rhs = Eigen::VectorXd::Zero(3 * slots);
+  state->slot_node.assign(size_t(slots), -1);
+  state->slot_of_node.assign(size_t(n), -1);
+  state->attached_slot.assign(size_t(slots), -1);
+  state->slot_stamp.assign(size_t(slots), -1);
+  state->unit_rhs.assign(3 * size_t(n), 0.0);
   state->a_blocks.assign(k_blocks_.size(), 0.0);
   state->system.size = 3 * static_cast<int32_t>(n);
   state->system.col_start = csc_col_start_;
@@ -384,7 +465,13 @@ std::unique_ptr<TissueState> EfgModel::MakeState() const {
   state->static_factor->Analyse(state->system);
   state->local_rhs.assign(3 * size_t(n), 0.0);
   state->local_solution.assign(3 * size_t(n), 0.0);
+  state->local_stiffness.assign(9 * size_t(n), 0.0);
+  state->local_valid.assign(size_t(n), 0);
   return state;
+}
+
+int64_t EfgModel::Factorisations(const TissueState& state) const {
+  return static_cast<const EfgState&>(state).factorisations;
 }
 
 const mesh::Points& EfgModel::NodalParameters(const TissueState& state) const {
@@ -481,6 +568,8 @@ void EfgModel::DisplacementAt(const TissueState& state, const Vector3d& x, Vecto
 Matrix3d EfgModel::LocalStiffness(const TissueState& base, int32_t node) const {
   const auto& st = static_cast<const EfgState&>(base);
   if (!st.static_valid || node < 0 || node >= num_nodes()) return Matrix3d::Zero();
+  double* cached = st.local_stiffness.data() + 9 * size_t(node);
+  if (st.local_valid[size_t(node)] != 0) return Eigen::Map<const Matrix3d>(cached);
   // Column k of the compliance Φ_I K_s⁻¹ Φ_Iᵀ: a unit force along k at the node point.
   const int32_t begin = phi_start_[size_t(node)], end = phi_start_[size_t(node) + 1];
   Matrix3d compliance;
@@ -498,7 +587,10 @@ Matrix3d EfgModel::LocalStiffness(const TissueState& base, int32_t node) const {
     compliance.col(k) = sum;
   }
   const Matrix3d stiffness = compliance.inverse();
-  return 0.5 * (stiffness + stiffness.transpose());
+  Eigen::Map<Matrix3d> out(cached);
+  out = 0.5 * (stiffness + stiffness.transpose());
+  st.local_valid[size_t(node)] = 1;
+  return Eigen::Map<const Matrix3d>(cached);
 }
 
 namespace {
@@ -608,14 +700,143 @@ void EfgModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base) const
   st->velocities.setZero();
 }
 
+bool EfgModel::PrepareFactors(double dt, bool low_rank, TissueState* base) const {
+  auto* st = static_cast<EfgState*>(base);
+  const double alpha = rayleigh_mass_, beta = rayleigh_stiffness_;
+  // The step's system: A0 (supports only) on the low-rank path, else A with the attachments.
+  const std::vector<double>& key = low_rank ? st->support : st->stiffness;
+  if (!st->factor_valid || dt != st->cached_dt ||
+      !std::equal(key.begin(), key.end(), st->cached_stiffness.begin())) {
+    AssembleSystem(dt * dt + dt * beta, 1.0 + dt * alpha, dt * dt, key.data(), st->a_blocks.data(),
+                   st->system.values.data());
+    st->factor_valid = st->factor->Factorise(st->system);
+    ++st->factorisations;
+    st->cached_dt = dt;
+    std::copy(key.begin(), key.end(), st->cached_stiffness.begin());
+    // Z = A0⁻¹ U belongs to the old factor: every slot is free again.
+    for (int32_t& node : st->slot_node) {
+      if (node >= 0) st->slot_of_node[size_t(node)] = -1;
+      node = -1;
+    }
+    std::fill(st->slot_stamp.begin(), st->slot_stamp.end(), int64_t{-1});
+    if (!st->factor_valid) return false;  // cannot happen for a positive mass
+  }
+  // The static K_s = K + P_s for LocalStiffness (nothing holds a body without supports).
+  if (!st->static_current ||
+      !std::equal(st->support.begin(), st->support.end(), st->cached_support.begin())) {
+    st->static_valid = false;
+    if (std::any_of(st->support.begin(), st->support.end(), [](double s) { return s > 0; })) {
+      AssembleSystem(1.0, 0.0, 1.0, st->support.data(), st->a_blocks.data(),
+                     st->system.values.data());
+      st->static_valid = st->static_factor->Factorise(st->system);
+      ++st->factorisations;
+    }
+    st->static_current = true;
+    std::copy(st->support.begin(), st->support.end(), st->cached_support.begin());
+    std::fill(st->local_valid.begin(), st->local_valid.end(), uint8_t{0});
+  }
+  if (!low_rank || st->num_attached == 0) return true;
+  // The attached nodes' slots: those already cached are kept (stamped), each new node takes the
+  // least recently used slot, which no node of this step holds (num_attached <= slots).
+  ++st->stamp;
+  const auto m = size_t(st->num_attached);
+  for (size_t j = 0; j < m; ++j) {
+    const int32_t slot = st->slot_of_node[size_t(st->attached_nodes[j])];
+    st->attached_slot[j] = slot;
+    if (slot >= 0) st->slot_stamp[size_t(slot)] = st->stamp;
+  }
+  for (size_t j = 0; j < m; ++j) {
+    if (st->attached_slot[j] >= 0) continue;
+    const auto oldest = std::min_element(st->slot_stamp.begin(), st->slot_stamp.end());
+    const auto slot = static_cast<int32_t>(oldest - st->slot_stamp.begin());
+    if (st->slot_node[size_t(slot)] >= 0) {
+      st->slot_of_node[size_t(st->slot_node[size_t(slot)])] = -1;
+    }
+    FillLowRankSlot(slot, st->attached_nodes[j], st);
+    st->slot_stamp[size_t(slot)] = st->stamp;
+    st->attached_slot[j] = slot;
+  }
+  return true;
+}
+
+void EfgModel::FillLowRankSlot(int32_t slot, int32_t node, TissueState* base) const {
+  auto* st = static_cast<EfgState*>(base);
+  const auto s = static_cast<Eigen::Index>(slot);
+  // Z's columns: A0⁻¹ Φ_Iᵀ e_k, three solves.
+  const int32_t begin = phi_start_[size_t(node)], end = phi_start_[size_t(node) + 1];
+  for (int k = 0; k < 3; ++k) {
+    for (int32_t a = begin; a < end; ++a) {
+      st->unit_rhs[3 * size_t(phi_node_[size_t(a)]) + size_t(k)] = phi_value_[size_t(a)];
+    }
+    st->factor->Solve(st->unit_rhs.data(), st->z.col(3 * s + k).data());
+    for (int32_t a = begin; a < end; ++a) {
+      st->unit_rhs[3 * size_t(phi_node_[size_t(a)]) + size_t(k)] = 0.0;
+    }
+  }
+  st->slot_node[size_t(slot)] = node;
+  st->slot_of_node[size_t(node)] = slot;
+  // G's blocks with every held slot t (this one included): Φ_{I_t} Z_s (3 × 3), mirrored (G
+  // is symmetric; the diagonal block is symmetrised).
+  for (size_t t = 0; t < st->slot_node.size(); ++t) {
+    const int32_t other = st->slot_node[t];
+    if (other < 0) continue;
+    Matrix3d block = Matrix3d::Zero();
+    for (int32_t a = phi_start_[size_t(other)]; a < phi_start_[size_t(other) + 1]; ++a) {
+      const auto row = static_cast<Eigen::Index>(3 * phi_node_[size_t(a)]);
+      block += phi_value_[size_t(a)] * st->z.block<3, 3>(row, 3 * s);
+    }
+    const auto tt = static_cast<Eigen::Index>(t);
+    if (tt == s) block = 0.5 * (block + block.transpose()).eval();
+    st->gram.block<3, 3>(3 * tt, 3 * s) = block;
+    st->gram.block<3, 3>(3 * s, 3 * tt) = block.transpose();
+  }
+}
+
+bool EfgModel::CorrectForAttachments(double dt, TissueState* base) const {
+  auto* st = static_cast<EfgState*>(base);
+  const auto m = static_cast<Eigen::Index>(st->num_attached);
+  const Eigen::Index r = 3 * m;
+  // W Uᵀ x0 (W = S^½: dt √k_j per node) and the lower triangle of I + W G W.
+  for (Eigen::Index i = 0; i < m; ++i) {
+    const int32_t node = st->attached_nodes[size_t(i)];
+    const double wi = dt * std::sqrt(st->attached_stiffness[size_t(i)]);
+    Vector3d ux = Vector3d::Zero();
+    for (int32_t a = phi_start_[size_t(node)]; a < phi_start_[size_t(node) + 1]; ++a) {
+      ux += phi_value_[size_t(a)] *
+            Eigen::Map<const Vector3d>(st->dv.data() + 3 * size_t(phi_node_[size_t(a)]));
+    }
+    st->small_rhs.segment<3>(3 * i) = wi * ux;
+    const auto si = static_cast<Eigen::Index>(st->attached_slot[size_t(i)]);
+    for (Eigen::Index j = 0; j <= i; ++j) {
+      const double wj = dt * std::sqrt(st->attached_stiffness[size_t(j)]);
+      const auto sj = static_cast<Eigen::Index>(st->attached_slot[size_t(j)]);
+      st->small.block<3, 3>(3 * i, 3 * j) = (wi * wj) * st->gram.block<3, 3>(3 * si, 3 * sj);
+    }
+    st->small.block<3, 3>(3 * i, 3 * i).diagonal().array() += 1.0;
+  }
+  const auto ld = static_cast<int>(st->small.rows());
+  if (!CholeskyInPlace(st->small.data(), static_cast<int>(r), ld)) return false;
+  CholeskySolveInPlace(st->small.data(), static_cast<int>(r), ld, st->small_rhs.data());
+  // dv = x0 - Σ_j Z_j (W y)_j.
+  Eigen::Map<Eigen::VectorXd> dv(st->dv.data(), st->dv.size());
+  for (Eigen::Index j = 0; j < m; ++j) {
+    const double wj = dt * std::sqrt(st->attached_stiffness[size_t(j)]);
+    const auto sj = static_cast<Eigen::Index>(st->attached_slot[size_t(j)]);
+    const Vector3d y = wj * st->small_rhs.segment<3>(3 * j);
+    dv.noalias() -= st->z.middleCols<3>(3 * sj) * y;
+  }
+  return true;
+}
+
 void EfgModel::Advance(const StepInputs& inputs, TissueState* base) const {
   auto* st = static_cast<EfgState*>(base);
   const auto n = size_t(num_nodes());
   const double dt = inputs.dt;
   const double alpha = rayleigh_mass_, beta = rayleigh_stiffness_;
 
-  // 1. Springs at the node points: per node its summed stiffness s_I and Σ k (target - X_I).
-  std::fill(st->stiffness.begin(), st->stiffness.end(), 0.0);
+  // 1. Springs at the node points: per node the supports' summed stiffness, every spring's
+  // Σ k (target - X_I), and the distinct attached nodes with their summed stiffness.
+  std::fill(st->support.begin(), st->support.end(), 0.0);
   st->springs.setZero();
   std::fill(st->fixed_now.begin(), st->fixed_now.end(), uint8_t{0});
   for (const int32_t node : inputs.fixed_nodes) {
@@ -623,41 +844,40 @@ void EfgModel::Advance(const StepInputs& inputs, TissueState* base) const {
     if (st->fixed_now[i] != 0) continue;  // listed twice
     st->fixed_now[i] = 1;
     if (st->fixed_prev[i] == 0) st->anchor.col(node) = st->positions.col(node);
-    st->stiffness[i] += penalty_;
+    st->support[i] += penalty_;
     st->springs.col(node) += penalty_ * (st->anchor.col(node) - rest_.col(node));
   }
   std::swap(st->fixed_now, st->fixed_prev);  // no allocation
   for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
     const int32_t node = inputs.prescribed_nodes[k];
-    st->stiffness[size_t(node)] += penalty_;
+    st->support[size_t(node)] += penalty_;
     st->springs.col(node) +=
         penalty_ *
         (inputs.prescribed_positions->col(static_cast<Eigen::Index>(k)) - rest_.col(node));
   }
   for (const Attachment& grasp : inputs.attachments) {
-    st->stiffness[size_t(grasp.node)] += grasp.stiffness;
+    st->attached_sum[size_t(grasp.node)] += grasp.stiffness;
     st->springs.col(grasp.node) += grasp.stiffness * (grasp.target - rest_.col(grasp.node));
   }
+  std::copy(st->support.begin(), st->support.end(), st->stiffness.begin());
+  st->num_attached = 0;
+  for (const Attachment& grasp : inputs.attachments) {  // in order; each node once
+    const auto i = size_t(grasp.node);
+    const double k = st->attached_sum[i];
+    if (k > 0.0) {
+      st->attached_nodes[size_t(st->num_attached)] = grasp.node;
+      st->attached_stiffness[size_t(st->num_attached)] = k;
+      ++st->num_attached;
+      st->stiffness[i] += k;
+    }
+    st->attached_sum[i] = 0.0;  // marks the node taken and leaves the sums zero
+  }
 
-  // 2. The factorisation's cache key: dt and every s_I.
-  if (!st->factor_valid || dt != st->cached_dt ||
-      !std::equal(st->stiffness.begin(), st->stiffness.end(), st->cached_stiffness.begin())) {
-    AssembleSystem(dt * dt + dt * beta, 1.0 + dt * alpha, dt * dt, st->stiffness.data(),
-                   st->a_blocks.data(), st->system.values.data());
-    st->factor_valid = st->factor->Factorise(st->system);
-    // The static K + P for LocalStiffness (nothing holds a body without springs).
-    st->static_valid = false;
-    if (std::any_of(st->stiffness.begin(), st->stiffness.end(), [](double s) { return s > 0; })) {
-      AssembleSystem(1.0, 0.0, 1.0, st->stiffness.data(), st->a_blocks.data(),
-                     st->system.values.data());
-      st->static_valid = st->static_factor->Factorise(st->system);
-    }
-    st->cached_dt = dt;
-    std::copy(st->stiffness.begin(), st->stiffness.end(), st->cached_stiffness.begin());
-    if (!st->factor_valid) {  // cannot happen for a positive mass; marks the step diverged
-      st->positions.setConstant(std::numeric_limits<double>::quiet_NaN());
-      return;
-    }
+  // 2. The factors: A0 and the attached nodes' slots, or A with the attachments inside.
+  const bool low_rank = st->num_attached <= max_low_rank_nodes_;
+  if (!PrepareFactors(dt, low_rank, st)) {
+    st->positions.setConstant(std::numeric_limits<double>::quiet_NaN());  // marks it diverged
+    return;
   }
 
   // 3. Physical displacements and velocities at the nodes.
@@ -681,6 +901,10 @@ void EfgModel::Advance(const StepInputs& inputs, TissueState* base) const {
 
   // 6. Solve, update the parameters, then the physical positions and velocities.
   st->factor->Solve(st->rhs.data(), st->dv.data());
+  if (low_rank && st->num_attached > 0 && !CorrectForAttachments(dt, st)) {
+    st->positions.setConstant(std::numeric_limits<double>::quiet_NaN());  // marks it diverged
+    return;
+  }
   ++st->counters.solver_iterations;
   st->vparams += st->dv;
   st->params += dt * st->vparams;

@@ -33,13 +33,33 @@
 //
 // Dynamics (Step): implicit Euler, linear in û (the model is linear):
 //   A Δv̂ = dt (f̂ - (K + P)(û + dt v̂) - C v̂ + Φᵀ g_springs),
-//   A = (1 + dt α) M̂ + (dt² + dt β) K + dt² P,   P = Σ_I s_I Φ_Iᵀ Φ_I,
-// s_I the node's summed penalty and grasp stiffness. A's pattern (supports that overlap) is
-// fixed at construction and analysed once (CHOLMOD); A is factorised on the first step and
-// again only when dt or the per-node stiffnesses s_I change (the cache key: a node fixed,
-// released or prescribed, a grasp made, released or re-stiffened). That re-factorisation
-// allocates (with the static K + P LocalStiffness uses: two numeric factorisations, ~0.15 s on
-// liver288 and ~10 s on liver4055); a step with an unchanged key allocates nothing.
+//   A = (1 + dt α) M̂ + (dt² + dt β) K + dt² P,   P = Σ_I s_I Φ_Iᵀ Φ_I (⊗ I₃),
+// s_I the node's summed spring stiffness. The springs are of two kinds:
+//  - supports: the penalty springs of fixed and prescribed nodes. They change rarely, so they
+//    are in the factorised matrix A0 = (1 + dt α) M̂ + (dt² + dt β) K + dt² P_s. A's pattern
+//    (supports that overlap) is fixed at construction and analysed once (CHOLMOD); A0 is
+//    factorised on the first step and again only when dt or a support's stiffness changes (a
+//    node fixed, released or prescribed). That re-factorisation allocates (with the static
+//    K_s = K + P_s LocalStiffness uses, factorised again only when the supports change: ~20–45 ms
+//    on liver288, ~10 s on liver4055).
+//  - attachments (StepInputs::attachments: grasps and contact springs): their stiffnesses and
+//    targets change every tick, so they enter by a low-rank update of A0's factor
+//    (Sherman–Morrison–Woodbury). For the m distinct attached nodes (summed stiffness k_j > 0)
+//    U = [Φ_Iᵀ e_x, Φ_Iᵀ e_y, Φ_Iᵀ e_z]_j (3N × 3m) and S = diag(dt² k_j ⊗ I₃), A = A0 + U S Uᵀ.
+//    With W = S^½ (never S⁻¹: a zero or tiny k stays harmless, and the 3m × 3m system tends to
+//    I for soft springs and to W G W — symmetric positive definite since Φ is invertible — for
+//    stiff ones):
+//      A⁻¹ b = x0 - Z W (I + W G W)⁻¹ W Uᵀ x0,   x0 = A0⁻¹ b,  Z = A0⁻¹ U,  G = Uᵀ Z.
+//    The state caches Z's 3 columns and G's rows per attached node in up to
+//    EfgParameters::max_low_rank_nodes slots (sized by MakeState, kept while A0 stands, the
+//    least recently attached evicted first): a node attached for the first time since A0 was
+//    factorised costs 3 solves; a change of stiffness or target costs one dense Cholesky of
+//    the 3m × 3m matrix (by hand, on preallocated storage) and 3m vector updates. A step with
+//    more distinct attached nodes than the slots falls back to factorising A with the
+//    attachments inside (every such step: correct, not interactive; max_low_rank_nodes = 0
+//    makes every step with an attachment take that path, as before the update existed). The
+//    update is exact algebra: the tests find it equal to that path to ~3e-13 (relative).
+// A step that factorises nothing allocates nothing. Factorisations() counts the factorisations.
 #pragma once
 
 #include <Eigen/Core>
@@ -67,6 +87,11 @@ struct EfgParameters {
   int gauss_points = 4;         // per tetrahedron: 4 (degree 2) or 14 (degree 5)
   double penalty_factor = 1e5;  // κ / max diag K [-], finite, > 0
   double speed_limit = 100.0;   // [m/s], finite, > 0: a faster node marks a diverged step
+  // Distinct attached nodes a step handles by the low-rank update of the supports' factor, in
+  // 0..kMaxLowRankNodes; a step with more factorises A with its attachments inside. Each slot
+  // costs MakeState 3 × 3·num_nodes doubles (64 on liver4055: ~19 MB per state).
+  int max_low_rank_nodes = 64;
+  static constexpr int kMaxLowRankNodes = 1024;
 };
 
 // What SolveStatic holds and loads (one linear solve).
@@ -91,13 +116,18 @@ class EfgModel final : public TissueModel {
 
   int32_t num_nodes() const override { return static_cast<int32_t>(rest_.cols()); }
   std::unique_ptr<TissueState> MakeState() const override;
-  // The condensed static stiffness of node I's point, (Φ_I K_s⁻¹ Φ_Iᵀ)⁻¹ [N/m] (3 × 3,
+  // The tissue's condensed static stiffness at node I's point, (Φ_I K_s⁻¹ Φ_Iᵀ)⁻¹ [N/m] (3 × 3,
   // symmetric positive definite): the force a static point displacement of the node costs with
-  // everything else free, K_s = K + P for the supports and grasps of the state's last step.
-  // Zero before the first step and for a body held by nothing (a free body has no static
-  // stiffness). Three solves with the state's static factor; allocates nothing after the first
-  // call on a state.
+  // everything else free, K_s = K + P_s for the SUPPORTS (fixed and prescribed nodes) of the
+  // state's last step — not its attachments: a tool's own spring is in series with this, as for
+  // the FEM. Zero before the first step and for a body without supports (a free body has no
+  // static stiffness). Cached per node in the state (9 doubles and a flag per node, sized by
+  // MakeState) until the supports change: the first call for a node costs three solves with
+  // the static factor, later ones a copy. Allocates nothing.
   Eigen::Matrix3d LocalStiffness(const TissueState& state, int32_t node) const override;
+  // Numeric factorisations the state's steps have made (the step's system and the static K_s
+  // together): what a change of dt or of the supports, or a step past max_low_rank_nodes, costs.
+  int64_t Factorisations(const TissueState& state) const;
   // The elastic forces at the node points [N], 3 × num_nodes: f = -Φ⁻ᵀ K û with û = Φ⁻¹ (x - X)
   // from the state's positions, so f = -∂E/∂x for the elastic energy of Energy(). Allocates.
   void InternalForces(const TissueState& state, mesh::Points* forces) const override;
@@ -146,6 +176,17 @@ class EfgModel final : public TissueModel {
                       double* blocks, double* values) const;
   // The index of block (row, col), row >= col, in the lower block pattern.
   int64_t BlockIndex(int32_t row, int32_t col) const;
+  // Step 2 of Advance: makes the state's factors current (the step's system with the supports
+  // only, on the low-rank path, or with the attachments too; the static K_s) and, on the
+  // low-rank path, the cached Z and G of this step's attached nodes. False when the step's
+  // system is not positive definite.
+  bool PrepareFactors(double dt, bool low_rank, TissueState* state) const;
+  // Fills low-rank slot `slot` with node I's columns Z = A0⁻¹ U_I and G's row and column.
+  void FillLowRankSlot(int32_t slot, int32_t node, TissueState* state) const;
+  // Applies the attachments' low-rank correction to dv = A0⁻¹ b in the state. False when the
+  // 3m × 3m system is not positive definite (cannot happen but by rounding: the step is then
+  // rejected).
+  bool CorrectForAttachments(double dt, TissueState* state) const;
 
   mesh::Points rest_;  // X [m], 3 × num_nodes
   std::unique_ptr<MlsShapeFunctions> shape_;
@@ -169,6 +210,7 @@ class EfgModel final : public TissueModel {
   double rayleigh_mass_ = 0.0, rayleigh_stiffness_ = 0.0;
   double penalty_ = 0.0;  // κ [N/m]: the penalty springs
   int64_t num_gauss_ = 0;
+  int32_t max_low_rank_nodes_ = 0;
 };
 
 }  // namespace somasim::models::meshless

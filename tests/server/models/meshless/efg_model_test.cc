@@ -4,7 +4,10 @@
 // converges under refinement, seed 001's liver pull and press give a finite, monotone
 // displacement curve, implicit dynamics settles on the static solution without allocating,
 // prescribed nodes follow their targets, rejected steps roll back, and bad parameters are
-// refused by name.
+// refused by name. Attachments (grasps, contact springs) enter by a low-rank update of the
+// supports' factor: equal to factorising with them inside, no factorisation and no allocation
+// when they change or move to new nodes, a fallback past the slots' capacity; LocalStiffness
+// sees the supports only.
 #include "server/models/meshless/efg_model.h"
 
 #include <gtest/gtest.h>
@@ -612,6 +615,232 @@ TEST(EfgModel, LocalStiffnessIsTheInverseStaticComplianceOfTheNode) {
   EXPECT_LT((compliance * k - Matrix3d::Identity()).norm(), 1e-6);
 }
 
+// ---- Attachments: the low-rank update of the supports' factor ----------------------------------
+
+// The liver's `count` highest nodes, highest first.
+std::vector<int32_t> TopNodes(const mesh::TetMesh& mesh, size_t count) {
+  std::vector<int32_t> nodes(static_cast<size_t>(mesh.vertices.cols()));
+  for (size_t i = 0; i < nodes.size(); ++i) nodes[i] = static_cast<int32_t>(i);
+  std::stable_sort(nodes.begin(), nodes.end(),
+                   [&](int32_t a, int32_t b) { return mesh.vertices(2, a) > mesh.vertices(2, b); });
+  nodes.resize(count);
+  return nodes;
+}
+
+// Springs on `nodes` (out has one per node, sized by the caller: nothing allocates) that change
+// every step like a sliding tool's contact: shares of k_total [N/m] that vary with `step`, and
+// targets 1 mm above the nodes' rest positions drifting sideways.
+void MovingSprings(const mesh::TetMesh& mesh, const std::vector<int32_t>& nodes, int step,
+                   double k_total, std::vector<Attachment>* out) {
+  for (size_t i = 0; i < nodes.size(); ++i) {
+    const double share = 0.2 + 0.8 * (0.5 + 0.5 * std::sin(0.37 * step + 2.1 * double(i)));
+    Attachment& a = (*out)[i];
+    a.node = nodes[i];
+    a.stiffness = share * k_total / double(nodes.size());
+    a.target = mesh.vertices.col(nodes[i]) +
+               Vector3d(5e-4 * std::sin(0.1 * step), 2e-4 * std::cos(0.07 * step), 1e-3);
+  }
+}
+
+// max_I |x_I - y_I| / max_I |y_I - X_I|: two states' positions, relative to y's displacement.
+double RelativeGap(const mesh::Points& x, const mesh::Points& y, const mesh::Points& rest) {
+  return (x - y).colwise().norm().maxCoeff() / (y - rest).colwise().norm().maxCoeff();
+}
+
+StepInputs LiverInputs(const LiverCase& liver) {
+  StepInputs inputs;
+  inputs.dt = 1e-3;
+  inputs.gravity = Vector3d(0.0, 0.0, -9.81);
+  inputs.fixed_nodes = liver.fixed;
+  return inputs;
+}
+
+// The Woodbury update against the old path (max_low_rank_nodes = 0: A factorised with the
+// attachments inside, every step): springs that change every step, a node listed twice, a
+// zero-stiffness spring, a very stiff and a very soft one.
+TEST(EfgModel, StepWithAttachmentsEqualsTheFullFactorisation) {
+  const LiverCase liver = Liver288();
+  const auto fast = EfgModel::FromTetMesh(liver.mesh, EfgParameters{});
+  EfgParameters full_parameters;
+  full_parameters.max_low_rank_nodes = 0;
+  const auto full = EfgModel::FromTetMesh(liver.mesh, full_parameters);
+  auto fast_state = fast->MakeState(), full_state = full->MakeState();
+  const std::vector<int32_t> nodes = TopNodes(liver.mesh, 9);
+  const std::vector<int32_t> contact(nodes.begin(), nodes.begin() + 3);
+  std::vector<Attachment> springs(contact.size());
+  StepInputs inputs = LiverInputs(liver);
+  double worst = 0.0;
+  for (int step = 0; step < 40; ++step) {
+    MovingSprings(liver.mesh, contact, step, 1000.0, &springs);
+    springs.resize(3);
+    springs.push_back({contact[0], liver.mesh.vertices.col(contact[0]), 300.0});  // twice
+    springs.push_back({nodes[3], Vector3d::Zero(), 0.0});                         // no spring
+    springs.push_back({nodes[4], liver.mesh.vertices.col(nodes[4]), 1e7});        // stiff
+    springs.push_back({nodes[5], Vector3d::Zero(), 1e-6});                        // soft
+    if (step >= 20)
+      springs.push_back({nodes[6 + step % 3], liver.mesh.vertices.col(nodes[6]), 500.0});
+    inputs.attachments = springs;
+    ASSERT_EQ(fast->Step(inputs, fast_state.get()), StepStatus::kOk) << step;
+    ASSERT_EQ(full->Step(inputs, full_state.get()), StepStatus::kOk) << step;
+    worst = std::max(
+        worst, RelativeGap(fast_state->positions, full_state->positions, liver.mesh.vertices));
+    worst = std::max(worst, (fast_state->velocities - full_state->velocities).norm() /
+                                full_state->velocities.norm());
+  }
+  std::printf(
+      "40 steps with changing springs: low-rank vs full factorisation %.2e relative; "
+      "factorisations %lld vs %lld\n",
+      worst, static_cast<long long>(fast->Factorisations(*fast_state)),
+      static_cast<long long>(full->Factorisations(*full_state)));
+  EXPECT_LT(worst, 1e-9);
+  EXPECT_EQ(fast->Factorisations(*fast_state), 2);  // A0 and K_s once
+  EXPECT_GE(full->Factorisations(*full_state), 40);
+}
+
+TEST(EfgModel, AttachmentsChangingEveryStepNeitherFactoriseNorAllocate) {
+  const LiverCase liver = Liver288();
+  const auto model = EfgModel::FromTetMesh(liver.mesh, EfgParameters{});
+  auto state = model->MakeState();
+  const std::vector<int32_t> nodes = TopNodes(liver.mesh, 3);
+  std::vector<Attachment> springs(nodes.size());
+  MovingSprings(liver.mesh, nodes, 0, 1000.0, &springs);
+  StepInputs inputs = LiverInputs(liver);
+  inputs.attachments = springs;
+  ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);  // factorises: may allocate
+  (void)model->LocalStiffness(*state, nodes[0]);
+  const int64_t factorised = model->Factorisations(*state);
+  int64_t allocations = 0;
+  {
+    const somasim::testing::AllocationCounter counter;
+    for (int step = 1; step <= 50; ++step) {
+      MovingSprings(liver.mesh, nodes, step, 1000.0, &springs);
+      ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+      (void)model->LocalStiffness(*state, nodes[size_t(step) % nodes.size()]);
+    }
+    allocations = counter.count();
+  }
+  EXPECT_EQ(model->Factorisations(*state), factorised);
+  EXPECT_EQ(allocations, 0);
+}
+
+// Grasps at ever new nodes after steady steps (the slots fill, then the least recently used
+// are reused): 3 solves per new node, no factorisation, no allocation, and the old path's
+// result.
+TEST(EfgModel, AGraspAtANewNodeCostsNoFactorisation) {
+  const LiverCase liver = Liver288();
+  EfgParameters small_parameters;
+  small_parameters.max_low_rank_nodes = 8;
+  const auto model = EfgModel::FromTetMesh(liver.mesh, small_parameters);
+  EfgParameters full_parameters;
+  full_parameters.max_low_rank_nodes = 0;
+  const auto full = EfgModel::FromTetMesh(liver.mesh, full_parameters);
+  const std::vector<int32_t> nodes = TopNodes(liver.mesh, 20);
+  std::vector<Attachment> grasp(4);
+  // Five steady steps, then one step per grasp position (lifted 2 mm); `counter` around the
+  // grasps, if given.
+  const auto run = [&](const EfgModel& m, TissueState* state, int64_t* factorised,
+                       int64_t* allocations) {
+    StepInputs inputs = LiverInputs(liver);
+    for (int step = 0; step < 5; ++step) ASSERT_EQ(m.Step(inputs, state), StepStatus::kOk);
+    *factorised = m.Factorisations(*state);
+    const somasim::testing::AllocationCounter counter;
+    for (size_t first = 0; first + grasp.size() <= nodes.size(); ++first) {
+      for (size_t k = 0; k < grasp.size(); ++k) {
+        const int32_t node = nodes[first + k];
+        grasp[k] = {node, liver.mesh.vertices.col(node) + Vector3d(0.0, 0.0, 2e-3), 800.0};
+      }
+      inputs.attachments = grasp;
+      ASSERT_EQ(m.Step(inputs, state), StepStatus::kOk);
+    }
+    *allocations = counter.count();
+  };
+  auto state = model->MakeState(), full_state = full->MakeState();
+  int64_t factorised = 0, allocations = 0, full_factorised = 0, full_allocations = 0;
+  run(*model, state.get(), &factorised, &allocations);
+  run(*full, full_state.get(), &full_factorised, &full_allocations);
+  EXPECT_EQ(factorised, 2);  // A0 and K_s on the first step
+  EXPECT_EQ(model->Factorisations(*state), factorised);
+  EXPECT_EQ(allocations, 0);
+  EXPECT_GE(full->Factorisations(*full_state) - full_factorised, 17);  // the old path's cost
+  EXPECT_LT(RelativeGap(state->positions, full_state->positions, liver.mesh.vertices), 1e-9);
+}
+
+TEST(EfgModel, LocalStiffnessIgnoresAttachmentsAndFollowsTheSupports) {
+  const LiverCase liver = Liver288();
+  const auto model = EfgModel::FromTetMesh(liver.mesh, EfgParameters{});
+  auto free_state = model->MakeState(), held_state = model->MakeState();
+  StepInputs inputs = LiverInputs(liver);
+  ASSERT_EQ(model->Step(inputs, free_state.get()), StepStatus::kOk);
+  const Attachment grasp{liver.load_node, liver.mesh.vertices.col(liver.load_node), 5000.0};
+  inputs.attachments = {&grasp, 1};
+  ASSERT_EQ(model->Step(inputs, held_state.get()), StepStatus::kOk);
+  const Matrix3d k = model->LocalStiffness(*free_state, liver.load_node);
+  const Matrix3d k_held = model->LocalStiffness(*held_state, liver.load_node);
+  EXPECT_LT((k_held - k).norm(), 1e-12 * k.norm());
+  EXPECT_EQ(model->LocalStiffness(*held_state, liver.load_node), k_held);  // from the cache
+  // The inverse of the static compliance with the supports only.
+  auto statics = model->MakeState();
+  Matrix3d compliance;
+  for (int c = 0; c < 3; ++c) {
+    mesh::Points forces = mesh::Points::Zero(3, model->num_nodes());
+    forces(c, liver.load_node) = 1.0;
+    EfgStaticLoads loads;
+    loads.external_forces = &forces;
+    loads.fixed_nodes = liver.fixed;
+    model->SolveStatic(loads, statics.get());
+    compliance.col(c) =
+        statics->positions.col(liver.load_node) - liver.mesh.vertices.col(liver.load_node);
+  }
+  EXPECT_LT((compliance * k_held - Matrix3d::Identity()).norm(), 1e-6);
+  // More supports: the cache is dropped and the node is stiffer.
+  std::vector<int32_t> more = liver.fixed;
+  for (const int32_t node : TopNodes(liver.mesh, 12)) {
+    if (node != liver.load_node) more.push_back(node);
+  }
+  inputs.fixed_nodes = more;
+  ASSERT_EQ(model->Step(inputs, held_state.get()), StepStatus::kOk);
+  const Matrix3d k_more = model->LocalStiffness(*held_state, liver.load_node);
+  std::printf(
+      "liver288 top node local stiffness z [N/m]: %.1f held below, %.1f with its "
+      "neighbours fixed too\n",
+      k(2, 2), k_more(2, 2));
+  EXPECT_GT(k_more(2, 2), 1.1 * k(2, 2));
+}
+
+// More distinct attached nodes than the slots: those steps factorise A with the attachments
+// (every step) and still equal the old path; back under the capacity, the update takes over.
+TEST(EfgModel, MoreAttachedNodesThanTheSlotsFallBackToFactorising) {
+  const LiverCase liver = Liver288();
+  EfgParameters small_parameters;
+  small_parameters.max_low_rank_nodes = 4;
+  const auto model = EfgModel::FromTetMesh(liver.mesh, small_parameters);
+  EfgParameters full_parameters;
+  full_parameters.max_low_rank_nodes = 0;
+  const auto full = EfgModel::FromTetMesh(liver.mesh, full_parameters);
+  auto state = model->MakeState(), full_state = full->MakeState();
+  const std::vector<int32_t> nodes = TopNodes(liver.mesh, 7);
+  const std::vector<int32_t> few(nodes.begin(), nodes.begin() + 3);
+  std::vector<Attachment> springs(nodes.size());
+  StepInputs inputs = LiverInputs(liver);
+  double worst = 0.0;
+  int64_t before = 0, during = 0;
+  for (int step = 0; step < 30; ++step) {
+    const bool many = step >= 10 && step < 20;
+    springs.resize(many ? nodes.size() : few.size());
+    MovingSprings(liver.mesh, many ? nodes : few, step, 1000.0, &springs);
+    inputs.attachments = springs;
+    ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk) << step;
+    ASSERT_EQ(full->Step(inputs, full_state.get()), StepStatus::kOk) << step;
+    worst =
+        std::max(worst, RelativeGap(state->positions, full_state->positions, liver.mesh.vertices));
+    if (step == 9) before = model->Factorisations(*state);
+    if (step == 19) during = model->Factorisations(*state);
+  }
+  EXPECT_LT(worst, 1e-9);
+  EXPECT_EQ(during - before, 10);                        // one per step over capacity
+  EXPECT_EQ(model->Factorisations(*state) - during, 1);  // A0 once more, then none
+}
+
 // Penalty springs at the node points: a prescribed node's physical position (Φ_I û, not its
 // parameter) follows its target to ~force / α, and a node fixed after moving stays where it was
 // when it became fixed.
@@ -715,6 +944,9 @@ TEST(EfgModel, BadParametersAreRefusedByName) {
   p = EfgParameters{};
   p.penalty_factor = 0.0;
   EXPECT_NE(InvalidArgumentOf(box, p).find("penalty_factor"), std::string::npos);
+  p = EfgParameters{};
+  p.max_low_rank_nodes = -1;
+  EXPECT_NE(InvalidArgumentOf(box, p).find("max_low_rank_nodes"), std::string::npos);
   p = EfgParameters{};
   p.mls.support_scale = 0.1;
   EXPECT_NE(InvalidArgumentOf(box, p).find("support_scale"), std::string::npos);
