@@ -782,7 +782,7 @@ void EfgModel::FillLowRankSlot(int32_t slot, int32_t node, TissueState* base) co
     if (other < 0) continue;
     Matrix3d block = Matrix3d::Zero();
     for (int32_t a = phi_start_[size_t(other)]; a < phi_start_[size_t(other) + 1]; ++a) {
-      const auto row = static_cast<Eigen::Index>(3 * phi_node_[size_t(a)]);
+      const Eigen::Index row = 3 * static_cast<Eigen::Index>(phi_node_[size_t(a)]);
       block += phi_value_[size_t(a)] * st->z.block<3, 3>(row, 3 * s);
     }
     const auto tt = static_cast<Eigen::Index>(t);
