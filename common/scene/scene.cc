@@ -188,15 +188,19 @@ void CheckMaterial(const Where& m, const Material& material, const Model& model)
     }
   } else {
     m.Positive("youngs_modulus", material.youngs_modulus());
-    if (IsFemModel(model) || model.has_efg()) CheckPoisson(m, material.poisson_ratio());
+    const bool efg = model.has_efg() || model.has_efg_hybrid();
+    if (IsFemModel(model) || efg) CheckPoisson(m, material.poisson_ratio());
   }
-  if (model.has_efg()) {  // its damping is the model's (α and β in model.efg)
+  if (model.has_efg() || model.has_efg_hybrid()) {  // its damping is the model's (α and β)
+    const std::string kind = model.has_efg() ? "efg" : "efg_hybrid";
+    const std::string from = model.has_efg() ? "model.efg." : "model.efg_hybrid.efg.";
     if (material.rayleigh_mass() != 0.0) {
-      m.Fail("rayleigh_mass", "the efg model takes its damping from model.efg.rayleigh_mass");
+      m.Fail("rayleigh_mass",
+             "the " + kind + " model takes its damping from " + from + "rayleigh_mass");
     }
     if (material.rayleigh_stiffness() != 0.0) {
       m.Fail("rayleigh_stiffness",
-             "the efg model takes its damping from model.efg.rayleigh_stiffness");
+             "the " + kind + " model takes its damping from " + from + "rayleigh_stiffness");
     }
   }
   const bool viscous = material.prony_size() > 0 || material.liver_nava2008_prony();
@@ -291,6 +295,31 @@ void CheckEfg(const Where& e, const Efg& efg) {
   if (efg.has_rayleigh_stiffness()) e.NonNegative("rayleigh_stiffness", efg.rayleigh_stiffness());
 }
 
+// The EFG hybrid's settings (unset: the model's defaults): its nested efg as an efg model's, and
+// the surgical region's.
+void CheckEfgHybrid(const Where& h, const EfgHybrid& hybrid) {
+  CheckEfg(h.Child("efg", hybrid.efg()), hybrid.efg());
+  if (hybrid.has_region_radius()) h.Positive("region_radius", hybrid.region_radius());
+  if (hybrid.has_region_centre()) h.Finite("region_centre", hybrid.region_centre());
+  if (hybrid.has_follow_fraction() &&
+      !(hybrid.follow_fraction() > 0.0 && hybrid.follow_fraction() <= 1.0)) {
+    h.Fail("follow_fraction", "must lie in (0, 1] (× region_radius)");
+  }
+  if (hybrid.has_max_region_nodes() &&
+      !(hybrid.max_region_nodes() >= 1 && hybrid.max_region_nodes() <= 4096)) {
+    h.Fail("max_region_nodes", "must lie in 1..4096");
+  }
+  if (hybrid.has_adapt_interval() && hybrid.adapt_interval() < 1) {
+    h.Fail("adapt_interval", "must be >= 1 (steps)");
+  }
+  const double refine = hybrid.has_refine_threshold() ? hybrid.refine_threshold() : 0.01;
+  if (!(refine > 0.0 && refine <= 1.0)) h.Fail("refine_threshold", "must lie in (0, 1]");
+  if (hybrid.has_coarsen_threshold() &&
+      !(hybrid.coarsen_threshold() >= 0.0 && hybrid.coarsen_threshold() <= refine)) {
+    h.Fail("coarsen_threshold", "must lie in [0, refine_threshold]");
+  }
+}
+
 void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) {
   CheckId(o, organ.id(), ids);
   switch (organ.mesh_case()) {
@@ -315,7 +344,7 @@ void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) 
   if (model.kind_case() == Model::KIND_NOT_SET) {
     m.FailHere(
         "needs a kind: mass_spring, molecular, position_based, fem_linear, fem_corotational, "
-        "fem_hyperelastic, reduced_kl or efg");
+        "fem_hyperelastic, reduced_kl, efg or efg_hybrid");
   }
   m.NonNegative("dt", model.dt());
   m.NonNegative("solver_tolerance", model.solver_tolerance());
@@ -328,6 +357,9 @@ void CheckOrgan(const Where& o, const Organ& organ, std::set<std::string>* ids) 
     m.Child("position_based", model.position_based()).Fail("iterations", "must be >= 0");
   }
   if (model.has_efg()) CheckEfg(m.Child("efg", model.efg()), model.efg());
+  if (model.has_efg_hybrid()) {
+    CheckEfgHybrid(m.Child("efg_hybrid", model.efg_hybrid()), model.efg_hybrid());
+  }
   if (model.has_reduced_kl()) {  // the material is in the reduced model's file
     if (model.reduced_kl().file().empty()) {
       m.Child("reduced_kl", model.reduced_kl()).Fail("file", "is empty");

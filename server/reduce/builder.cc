@@ -298,16 +298,18 @@ NonlinearBuildReport BuildNonlinearModel(
                     static_cast<Eigen::Index>(columns.size()));
   for (size_t c = 0; c < columns.size(); ++c) q.col(static_cast<Eigen::Index>(c)) = columns[c];
   out.snapshots = columns.size();
-  // POD in the energy inner product of the tangent at rest (pod.h: a Galerkin model is as good
-  // as its basis in the energy norm).
-  models::fem::BlockSparseMatrix tangent;
-  full.AssembleTangent(full.rest_positions(), &tangent);
-  Eigen::MatrixXd weighted(q.rows(), q.cols());
-  for (Eigen::Index c = 0; c < q.cols(); ++c) {
-    tangent.Multiply(q.col(c).data(), weighted.col(c).data(), nullptr);
+  // POD in the Euclidean inner product (the default) or in the rest tangent's energy (pod.h).
+  Eigen::MatrixXd weighted;
+  if (plan.energy_inner_product) {
+    models::fem::BlockSparseMatrix tangent;
+    full.AssembleTangent(full.rest_positions(), &tangent);
+    weighted.resize(q.rows(), q.cols());
+    for (Eigen::Index c = 0; c < q.cols(); ++c) {
+      tangent.Multiply(q.col(c).data(), weighted.col(c).data(), nullptr);
+    }
   }
-  models::reduced::PodModes pod =
-      models::reduced::ModesOfSnapshots(q, plan.nonlinear_pod, &weighted);
+  models::reduced::PodModes pod = models::reduced::ModesOfSnapshots(
+      q, plan.nonlinear_pod, plan.energy_inner_product ? &weighted : nullptr);
   out.eigenvalues = pod.eigenvalues;
   out.kept_fraction = pod.kept_fraction;
   report("modes", 1, 1);

@@ -45,6 +45,9 @@ struct SamplingPlan {
   // cubature's settings.
   std::vector<int32_t> region_nodes;
   models::reduced::PodSettings nonlinear_pod;  // its own energy criterion and number of modes
+  // Its POD in the rest tangent's energy inner product (QᵀKQ) instead of the Euclidean one
+  // (QᵀQ, the default: 3.6–7.7 % instead of 4.3–9.5 % on the liver's inside cases at 64 modes).
+  bool energy_inner_product = false;
   models::reduced::CubatureSettings cubature;
   // Static samples at every region node: the inward normal and `tilts` directions tilted from it
   // by tilt_deg, each at the magnitudes nonlinear_forces (ascending; empty: `forces` and the

@@ -254,6 +254,7 @@ int RunMain(int argc, char** argv) {
     plan.nonlinear_pod.energy_fraction = plan.pod.energy_fraction;
     if (r.nonlinear_max_modes() > 0) plan.nonlinear_pod.max_modes = r.nonlinear_max_modes();
     if (r.cubature_tolerance() > 0.0) plan.cubature.tolerance = r.cubature_tolerance();
+    plan.energy_inner_product = r.nonlinear_inner_product() == scene::Reduction::ENERGY;
     if (r.nonlinear_tilts() > 0) plan.tilts = r.nonlinear_tilts();
     if (r.nonlinear_tilt_deg() > 0.0) plan.tilt_deg = r.nonlinear_tilt_deg();
     plan.nonlinear_forces.assign(r.nonlinear_force().begin(), r.nonlinear_force().end());

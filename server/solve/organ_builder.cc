@@ -37,6 +37,8 @@ const char* ModelName(const Model& model) {
       return "reduced_kl";
     case Model::kEfg:
       return "efg";
+    case Model::kEfgHybrid:
+      return "efg_hybrid";
     case Model::KIND_NOT_SET:
       break;
   }
@@ -95,11 +97,10 @@ models::fem::FemParameters FemParametersOf(const scene::Organ& organ) {
   return p;
 }
 
-// E, ν and ρ from the material (as the linear FEM takes them); the rest from model.efg, unset
-// fields keeping the model's defaults (efg_model.h).
-models::meshless::EfgParameters EfgParametersOf(const scene::Organ& organ) {
+// E, ν and ρ from the material (as the linear FEM takes them); the rest from `e` (model.efg, or
+// model.efg_hybrid.efg), unset fields keeping the model's defaults (efg_model.h).
+models::meshless::EfgParameters EfgParametersOf(const scene::Organ& organ, const scene::Efg& e) {
   const scene::Material& m = organ.material();
-  const scene::Efg& e = organ.model().efg();
   models::meshless::EfgParameters p;
   p.youngs_modulus = m.youngs_modulus();
   p.poisson_ratio = m.poisson_ratio();
@@ -110,6 +111,28 @@ models::meshless::EfgParameters EfgParametersOf(const scene::Organ& organ) {
   if (e.has_penalty_factor()) p.penalty_factor = e.penalty_factor();
   if (e.has_rayleigh_mass()) p.rayleigh_mass = e.rayleigh_mass();
   if (e.has_rayleigh_stiffness()) p.rayleigh_stiffness = e.rayleigh_stiffness();
+  return p;
+}
+
+// The EFG part as EfgParametersOf (model.efg_hybrid.efg), the surgical region's from
+// model.efg_hybrid, unset fields keeping the model's defaults (efg_hybrid_model.h): an unset
+// region_centre stays non-finite (the tool decides).
+models::meshless::EfgHybridParameters EfgHybridParametersOf(const scene::Organ& organ) {
+  const scene::EfgHybrid& h = organ.model().efg_hybrid();
+  models::meshless::EfgHybridParameters p;
+  p.efg = EfgParametersOf(organ, h.efg());
+  if (h.has_region_radius()) p.region_radius = h.region_radius();
+  if (h.has_region_centre()) {
+    const scene::Vec3& c = h.region_centre();
+    p.region_centre = Eigen::Vector3d(c.x(), c.y(), c.z());
+  }
+  if (h.has_follow_tool()) p.follow_tool = h.follow_tool();
+  if (h.has_follow_fraction()) p.follow_fraction = h.follow_fraction();
+  if (h.has_max_region_nodes()) p.max_region_nodes = h.max_region_nodes();
+  if (h.has_adaptive()) p.adaptive = h.adaptive();
+  if (h.has_adapt_interval()) p.adapt_interval = h.adapt_interval();
+  if (h.has_refine_threshold()) p.refine_threshold = h.refine_threshold();
+  if (h.has_coarsen_threshold()) p.coarsen_threshold = h.coarsen_threshold();
   return p;
 }
 
@@ -337,7 +360,8 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
   out.model_name = ModelName(organ.model());
   const bool fem = scene::IsFemModel(organ.model());
   const bool volume_model =  // needs tetrahedra
-      fem || organ.model().has_reduced_kl() || organ.model().has_efg();
+      fem || organ.model().has_reduced_kl() || organ.model().has_efg() ||
+      organ.model().has_efg_hybrid();
   mesh::SurfaceMesh surface;
   if (organ.mesh_case() == scene::Organ::kBuiltin) {
     out.mesh_name = "builtin:" + organ.builtin();
@@ -404,8 +428,14 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
       out.fem = model.get();
       out.model = std::move(model);
     } else if (organ.model().has_efg()) {
-      auto model = models::meshless::EfgModel::FromTetMesh(out.volume, EfgParametersOf(organ));
+      auto model = models::meshless::EfgModel::FromTetMesh(
+          out.volume, EfgParametersOf(organ, organ.model().efg()));
       out.efg = model.get();
+      out.model = std::move(model);
+    } else if (organ.model().has_efg_hybrid()) {
+      auto model =
+          models::meshless::EfgHybridModel::FromTetMesh(out.volume, EfgHybridParametersOf(organ));
+      out.efg_hybrid = model.get();
       out.model = std::move(model);
     } else if (organ.model().has_reduced_kl()) {
       std::filesystem::path path(organ.model().reduced_kl().file());

@@ -1,8 +1,8 @@
 // Building a scene's organs (idl/scene.proto) into tissue models on their meshes: the mesh
 // (built-in or file, in metres, in the input's node order), the model with its material, the
 // held nodes, and the node sets of regions. Faults only a mesh can reveal (a node id out of
-// range, a region that selects no node, a FEM or EFG model on a surface) are SceneErrors naming the
-// file, line and field.
+// range, a region that selects no node, a FEM or EFG model on a surface) are SceneErrors naming
+// the file, line and field.
 #pragma once
 
 #include <Eigen/Core>
@@ -14,6 +14,7 @@
 #include "common/mesh/mesh_types.h"
 #include "common/scene/scene.h"
 #include "server/models/fem/fem_model.h"
+#include "server/models/meshless/efg_hybrid_model.h"
 #include "server/models/meshless/efg_model.h"
 #include "server/models/tissue_model.h"
 
@@ -32,11 +33,13 @@ struct BuiltOrgan {
   std::unique_ptr<models::TissueModel> model;
   const models::fem::FemModel* fem = nullptr;       // model, when it is a FEM model
   const models::meshless::EfgModel* efg = nullptr;  // model, when it is the EFG model
-  double dt = 1e-3;                                 // [s], the model's step
-  double solver_tolerance = 0.0;                    // the scene's, 0 = the model's default
-  int solver_max_iterations = 0;                    // the scene's, 0 = the model's default
-  std::vector<int32_t> fixed_nodes;                 // sorted, unique: the fixed regions
-  std::vector<int32_t> unused_nodes;                // in no element: held still, reported
+  // model, when it is the EFG hybrid (efg stays null: the hybrid is a model of its own)
+  const models::meshless::EfgHybridModel* efg_hybrid = nullptr;
+  double dt = 1e-3;                   // [s], the model's step
+  double solver_tolerance = 0.0;      // the scene's, 0 = the model's default
+  int solver_max_iterations = 0;      // the scene's, 0 = the model's default
+  std::vector<int32_t> fixed_nodes;   // sorted, unique: the fixed regions
+  std::vector<int32_t> unused_nodes;  // in no element: held still, reported
   const mesh::Points& rest() const { return volume.vertices; }
 };
 

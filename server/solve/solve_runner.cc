@@ -220,11 +220,12 @@ double LastHistoryTime(const OrganRun& run) {
   return end;
 }
 
-// The lumped node masses [kg] of a FEM or EFG organ (num_nodes), or null (particle and reduced
-// models: their reactions leave the weight out).
+// The lumped node masses [kg] of a FEM, EFG or EFG hybrid organ (num_nodes), or null (particle
+// and reduced models: their reactions leave the weight out).
 const std::vector<double>* MassesOf(const BuiltOrgan& organ) {
   if (organ.fem != nullptr) return &organ.fem->masses();
   if (organ.efg != nullptr) return &organ.efg->masses();
+  if (organ.efg_hybrid != nullptr) return &organ.efg_hybrid->efg().masses();
   return nullptr;
 }
 
@@ -303,14 +304,17 @@ void RunStatic(const scene::Scene& scene, const SolveOptions& options, OrganRun&
   history.Close(s->history_file);
 }
 
-// Static, EFG: the model is linear, so each output time is one solve (K + P) û = f̂ with the loads
-// at that time (no continuation; load_steps does not matter), counted as one Newton iteration.
-// Reactions: the supports' force on each held node, -(elastic + external forces + weight) there,
-// which is what the penalty springs exert; on the free nodes the same sum is the residual that
-// final_residual reports, relative to the loads and reactions.
-void RunStaticEfg(const scene::Scene& scene, const SolveOptions& options, OrganRun& run,
-                  OrganSummary* s) {
-  const meshless::EfgModel& efg = *run.organ.efg;
+// Static, EFG (EfgModel) or its hybrid (EfgHybridModel, whose reduced system gives the same
+// equilibrium): the model is linear, so each output time is one solve (K + P) û = f̂ with the
+// loads at that time (no continuation; load_steps does not matter), counted as one Newton
+// iteration. Reactions: the supports' force on each held node, -(elastic + external forces +
+// weight) there, which is what the penalty springs exert; on the free nodes the same sum is the
+// residual that final_residual reports, relative to the loads and reactions. Both take the
+// pressure as nodal forces (external_forces), never as parameter_forces (the hybrid refuses
+// those).
+template <typename EfgLike>
+void RunStaticEfg(const EfgLike& efg, const std::vector<double>& masses, const scene::Scene& scene,
+                  const SolveOptions& options, OrganRun& run, OrganSummary* s) {
   const auto state = efg.MakeState();
   meshless::EfgStaticLoads loads;
   loads.external_forces = &run.forces;
@@ -343,7 +347,7 @@ void RunStaticEfg(const scene::Scene& scene, const SolveOptions& options, OrganR
     double residual = 0.0, scale = 0.0;  // squared norms [N²]
     for (Eigen::Index i = 0; i < rest.cols(); ++i) {
       const Eigen::Vector3d load =
-          run.forces.col(i) + efg.masses()[static_cast<size_t>(i)] * loads.gravity;
+          run.forces.col(i) + masses[static_cast<size_t>(i)] * loads.gravity;
       const Eigen::Vector3d r = -(internal.col(i) + load);
       scale += load.squaredNorm();
       if (held[static_cast<size_t>(i)] != 0) {
@@ -530,16 +534,17 @@ SolveSummary RunSolve(const scene::Scene& scene, const scene::SceneLines& lines,
   }
   for (int k = 0; k < scene.organ_size(); ++k) {
     OrganRun run = PrepareOrgan(scene, k, lines, options);
-    if (analysis.has_quasi_static() && run.organ.efg != nullptr) {
+    const bool efg = run.organ.efg != nullptr || run.organ.efg_hybrid != nullptr;
+    if (analysis.has_quasi_static() && efg) {
       throw lines.Error(run.organ.field + ".model",
-                        "a quasi_static analysis needs a FEM model: efg is elastic (it has no "
-                        "creep), so its equilibria come from static_solve with output times, "
-                        "its motion from a dynamic analysis");
+                        "a quasi_static analysis needs a FEM model: " + run.organ.model_name +
+                            " is elastic (it has no creep), so its equilibria come from "
+                            "static_solve with output times, its motion from a dynamic analysis");
     }
-    if (!analysis.has_dynamic() && run.organ.fem == nullptr && run.organ.efg == nullptr) {
+    if (!analysis.has_dynamic() && run.organ.fem == nullptr && !efg) {
       throw lines.Error(run.organ.field + ".model",
                         "a " + summary.analysis + " analysis needs a FEM model (fem_linear, " +
-                            "fem_corotational or fem_hyperelastic) or efg; " +
+                            "fem_corotational or fem_hyperelastic), efg or efg_hybrid; " +
                             run.organ.model_name + " runs in a dynamic analysis");
     }
     if (!analysis.has_dynamic()) {
@@ -565,7 +570,9 @@ SolveSummary RunSolve(const scene::Scene& scene, const scene::SceneLines& lines,
     switch (analysis.kind_case()) {
       case scene::Analysis::kStaticSolve:
         if (o.efg != nullptr) {
-          RunStaticEfg(scene, options, run, &s);
+          RunStaticEfg(*o.efg, o.efg->masses(), scene, options, run, &s);
+        } else if (o.efg_hybrid != nullptr) {
+          RunStaticEfg(*o.efg_hybrid, o.efg_hybrid->efg().masses(), scene, options, run, &s);
         } else {
           RunStatic(scene, options, run, &s);
         }

@@ -1,10 +1,10 @@
 // somasim-solve's engine (SPEC §6): runs a scene's analysis — static (Newton with load steps;
-// the linear EFG model: one solve per output time), quasi-static (viscoelastic creep/relaxation
-// without inertia) or dynamic (each model's Step) — on every organ, writes DIR/<organ>_<output
-// index>.vtu with point data `displacement` [m] in the input mesh's node order, a
-// DIR/<organ>_history.csv of the run, and returns the summary that the tool prints as one JSON
-// object. Organs do not touch one another (contact arrives with issue 6), so each organ is solved
-// on its own.
+// the linear EFG model and its hybrid: one solve per output time), quasi-static (viscoelastic
+// creep/relaxation without inertia) or dynamic (each model's Step) — on every organ, writes
+// DIR/<organ>_<output index>.vtu with point data `displacement` [m] in the input mesh's node
+// order, a DIR/<organ>_history.csv of the run, and returns the summary that the tool prints as
+// one JSON object. Organs do not touch one another (contact arrives with issue 6), so each organ
+// is solved on its own.
 #pragma once
 
 #include <Eigen/Core>

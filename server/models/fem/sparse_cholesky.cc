@@ -180,6 +180,32 @@ void SparseCholesky::Solve(const double* b, double* x) {
   std::copy(s, s + impl_->size, x);
 }
 
+void SparseCholesky::SolveMany(const double* b, double* x, int32_t columns) {
+  Impl& s = *impl_;
+  if (!s.factorised) throw std::runtime_error("SparseCholesky::SolveMany: no factor");
+  if (columns <= 0) return;
+  const auto n = static_cast<size_t>(s.size);
+  constexpr int32_t kChunk = 64;  // right-hand sides per CHOLMOD call: bounded workspace
+  cholmod_dense* rhs = cholmod_allocate_dense(n, static_cast<size_t>(std::min(columns, kChunk)), n,
+                                              CHOLMOD_REAL, &s.common);
+  if (rhs == nullptr) throw std::runtime_error("SparseCholesky::SolveMany: out of memory");
+  for (int32_t first = 0; first < columns; first += kChunk) {
+    const auto count = static_cast<size_t>(std::min(kChunk, columns - first));
+    rhs->ncol = count;
+    const double* from = b + n * static_cast<size_t>(first);
+    std::copy(from, from + n * count, static_cast<double*>(rhs->x));
+    cholmod_dense* solution = cholmod_solve(CHOLMOD_A, s.factor, rhs, &s.common);
+    if (solution == nullptr) {
+      cholmod_free_dense(&rhs, &s.common);
+      throw std::runtime_error("SparseCholesky::SolveMany: CHOLMOD failed");
+    }
+    const auto* values = static_cast<const double*>(solution->x);
+    std::copy(values, values + n * count, x + n * static_cast<size_t>(first));
+    cholmod_free_dense(&solution, &s.common);
+  }
+  cholmod_free_dense(&rhs, &s.common);
+}
+
 void SparseCholesky::InverseBlock(const int32_t* indices, int32_t count, double* block) {
   InverseBlocks(indices, count, 1, block);
 }

@@ -12,6 +12,7 @@
 #include <utility>
 
 #include "server/models/fem/sparse_cholesky.h"
+#include "server/models/meshless/small_cholesky.h"
 
 namespace somasim::models::meshless {
 namespace {
@@ -48,41 +49,6 @@ void CheckParameters(const EfgParameters& p) {
   finite_positive(p.speed_limit, "speed_limit [m/s]");
   if (!(p.max_low_rank_nodes >= 0 && p.max_low_rank_nodes <= EfgParameters::kMaxLowRankNodes)) {
     Refuse("max_low_rank_nodes must lie in 0.." + std::to_string(EfgParameters::kMaxLowRankNodes));
-  }
-}
-
-// In-place Cholesky L Lᵀ of the n × n lower triangle of a column-major matrix `a` (leading
-// dimension ld), left-looking by columns (contiguous inner loops): the 3m × 3m system of the
-// attachments' update. By hand rather than Eigen's blocked LLT, whose products may take heap
-// workspace. False when a pivot is not positive.
-bool CholeskyInPlace(double* a, int n, int ld) {
-  for (int j = 0; j < n; ++j) {
-    double* col_j = a + static_cast<ptrdiff_t>(j) * ld;
-    for (int k = 0; k < j; ++k) {
-      const double* col_k = a + static_cast<ptrdiff_t>(k) * ld;
-      const double l_jk = col_k[j];
-      for (int i = j; i < n; ++i) col_j[i] -= l_jk * col_k[i];
-    }
-    if (!(col_j[j] > 0.0)) return false;
-    const double pivot = std::sqrt(col_j[j]);
-    col_j[j] = pivot;
-    for (int i = j + 1; i < n; ++i) col_j[i] /= pivot;
-  }
-  return true;
-}
-
-// x = (L Lᵀ)⁻¹ x in place, L from CholeskyInPlace.
-void CholeskySolveInPlace(const double* l, int n, int ld, double* x) {
-  for (int j = 0; j < n; ++j) {  // L y = x, by columns
-    const double* col = l + static_cast<ptrdiff_t>(j) * ld;
-    x[j] /= col[j];
-    for (int i = j + 1; i < n; ++i) x[i] -= col[i] * x[j];
-  }
-  for (int j = n - 1; j >= 0; --j) {  // Lᵀ x = y, by rows of Lᵀ (columns of L)
-    const double* col = l + static_cast<ptrdiff_t>(j) * ld;
-    double sum = x[j];
-    for (int i = j + 1; i < n; ++i) sum -= col[i] * x[i];
-    x[j] = sum / col[j];
   }
 }
 
@@ -605,8 +571,7 @@ mesh::Points ParametersOf(const Eigen::SparseLU<Eigen::SparseMatrix<double>>& ph
 
 }  // namespace
 
-void EfgModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
-  const mesh::Points params = ParametersOf(factors_->phi, state.positions, rest_);
+void EfgModel::ForcesOfParameters(const mesh::Points& params, mesh::Points* forces) const {
   mesh::Points k_params(3, num_nodes());
   MultiplyStiffness(params.data(), k_params.data());
   // Φᵀ f = -K û: the physical forces whose virtual work on δu = Φ δû is -δûᵀ K û.
@@ -615,12 +580,19 @@ void EfgModel::InternalForces(const TissueState& state, mesh::Points* forces) co
   *forces = f.transpose();
 }
 
-EnergyReport EfgModel::Energy(const TissueState& state, const Vector3d& gravity) const {
-  EnergyReport report;
-  const mesh::Points params = ParametersOf(factors_->phi, state.positions, rest_);
+double EfgModel::ElasticEnergyOfParameters(const mesh::Points& params) const {
   mesh::Points k_params(3, num_nodes());
   MultiplyStiffness(params.data(), k_params.data());
-  report.elastic = 0.5 * params.cwiseProduct(k_params).sum();
+  return 0.5 * params.cwiseProduct(k_params).sum();
+}
+
+void EfgModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
+  ForcesOfParameters(ParametersOf(factors_->phi, state.positions, rest_), forces);
+}
+
+EnergyReport EfgModel::Energy(const TissueState& state, const Vector3d& gravity) const {
+  EnergyReport report;
+  report.elastic = ElasticEnergyOfParameters(ParametersOf(factors_->phi, state.positions, rest_));
   for (Eigen::Index i = 0; i < state.positions.cols(); ++i) {
     const double m = mass_[size_t(i)];
     report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();

@@ -154,6 +154,10 @@ class EfgModel final : public TissueModel {
   // Allocates (an MLS evaluation).
   void DisplacementAt(const TissueState& state, const Eigen::Vector3d& x, Eigen::Vector3d* u,
                       Eigen::Matrix3d* gradient) const;
+  // For a parameter field û (3 × num_nodes): the elastic energy ½ ûᵀ K û [J], and the physical
+  // node-point forces f = -Φ⁻ᵀ K û [N] (3 × num_nodes). Allocate.
+  double ElasticEnergyOfParameters(const mesh::Points& parameters) const;
+  void ForcesOfParameters(const mesh::Points& parameters, mesh::Points* forces) const;
   // Φ û for parameters û (3 × num_nodes): the physical displacements at the nodes.
   void NodeDisplacements(const mesh::Points& parameters, mesh::Points* displacements) const;
 
@@ -161,6 +165,7 @@ class EfgModel final : public TissueModel {
   void Advance(const StepInputs& inputs, TissueState* state) const override;
 
  private:
+  friend class EfgHybridModel;  // reduces this model: reads its matrices and shape functions
   EfgModel();
   struct Factors;  // Φ's sparse LU (for û from positions), kept out of this header
 

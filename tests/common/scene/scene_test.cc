@@ -336,6 +336,103 @@ TEST(Scene, EfgModelSettingsAreChecked) {
                 6, "organ[0].material.youngs_modulus", "> 0");
 }
 
+// The EFG hybrid (efg_hybrid): its EFG settings are the nested efg message, checked as model.efg
+// is; its surgical region's settings are optional (unset: the model's defaults; no
+// region_centre: the tool decides) and checked when given, each fault named by field and line.
+// The repository's hybrid scene loads.
+TEST(Scene, EfgHybridModelSettingsAreChecked) {
+  const Scene file =
+      LoadSceneFile(std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/liver288_efg_hybrid.scene.txtpb");
+  ASSERT_TRUE(file.organ(0).model().has_efg_hybrid());
+  const EfgHybrid& defaults = file.organ(0).model().efg_hybrid();
+  EXPECT_DOUBLE_EQ(defaults.region_radius(), 0.05);
+  EXPECT_FALSE(defaults.has_region_centre());
+  EXPECT_FALSE(defaults.has_follow_tool());
+  EXPECT_FALSE(defaults.has_efg());
+  const std::string head =
+      "format_version: 1\norgan {\n  id: \"o\"\n  builtin: \"liver288\"\n"  // lines 1-4
+      "  model {\n    efg_hybrid {\n";                                      // lines 5-6
+  const auto scene = [&](const std::string& efg, const std::string& hybrid,
+                         const std::string& material) {
+    return head + "      efg { " + efg + " }\n" +                                      // line 7
+           "      " + hybrid + "\n    }\n  }\n" +                                      // lines 8-10
+           "  material { density: 1055 youngs_modulus: 5000 " + material + " }\n}\n";  // 11
+  };
+  const std::string nu = "poisson_ratio: 0.35";
+  const Scene good = ParseScene(
+      scene("gauss_points: 14 support_scale: 2.5 support_neighbours: 6 penalty_factor: 1e4 "
+            "rayleigh_mass: 0 rayleigh_stiffness: 0.02",
+            "region_radius: 0.03 region_centre { x: 0.01 y: -0.02 z: 0.05 } follow_tool: false "
+            "follow_fraction: 1 max_region_nodes: 4096",
+            nu),
+      "s");
+  const EfgHybrid& h = good.organ(0).model().efg_hybrid();
+  EXPECT_EQ(h.efg().gauss_points(), 14);
+  EXPECT_DOUBLE_EQ(h.efg().support_scale(), 2.5);
+  EXPECT_EQ(h.efg().support_neighbours(), 6);
+  EXPECT_DOUBLE_EQ(h.efg().penalty_factor(), 1e4);
+  EXPECT_TRUE(h.efg().has_rayleigh_mass());
+  EXPECT_DOUBLE_EQ(h.efg().rayleigh_mass(), 0.0);
+  EXPECT_DOUBLE_EQ(h.efg().rayleigh_stiffness(), 0.02);
+  EXPECT_DOUBLE_EQ(h.region_radius(), 0.03);
+  ASSERT_TRUE(h.has_region_centre());
+  EXPECT_DOUBLE_EQ(h.region_centre().y(), -0.02);
+  EXPECT_TRUE(h.has_follow_tool());  // false given: not the default
+  EXPECT_FALSE(h.follow_tool());
+  EXPECT_DOUBLE_EQ(h.follow_fraction(), 1.0);
+  EXPECT_EQ(h.max_region_nodes(), 4096);
+  // A block without an efg message takes the EFG's defaults.
+  EXPECT_NO_THROW(ParseScene(head + "    }\n  }\n  material { density: 1055 youngs_modulus: "
+                                    "5000 poisson_ratio: 0.35 }\n}\n",
+                             "s"));
+  // The nested efg: as model.efg's, on line 7.
+  const std::string efg = "organ[0].model.efg_hybrid.efg.";
+  ExpectRefused(scene("gauss_points: 5", "", nu), 7, efg + "gauss_points", "4 or 14");
+  ExpectRefused(scene("support_scale: 0.5", "", nu), 7, efg + "support_scale", ">= 1");
+  ExpectRefused(scene("support_neighbours: 65", "", nu), 7, efg + "support_neighbours", "1..64");
+  ExpectRefused(scene("penalty_factor: nan", "", nu), 7, efg + "penalty_factor", "finite");
+  ExpectRefused(scene("rayleigh_mass: -1", "", nu), 7, efg + "rayleigh_mass", ">= 0");
+  ExpectRefused(scene("rayleigh_stiffness: inf", "", nu), 7, efg + "rayleigh_stiffness", "finite");
+  // The surgical region, on line 8.
+  const std::string hybrid = "organ[0].model.efg_hybrid.";
+  ExpectRefused(scene("", "region_radius: 0", nu), 8, hybrid + "region_radius", "> 0");
+  ExpectRefused(scene("", "region_radius: -0.05", nu), 8, hybrid + "region_radius", "> 0");
+  ExpectRefused(scene("", "region_radius: inf", nu), 8, hybrid + "region_radius", "finite");
+  ExpectRefused(scene("", "region_centre { x: nan }", nu), 8, hybrid + "region_centre",
+                "finite x, y and z");
+  ExpectRefused(scene("", "follow_fraction: 0", nu), 8, hybrid + "follow_fraction", "(0, 1]");
+  ExpectRefused(scene("", "follow_fraction: 1.5", nu), 8, hybrid + "follow_fraction", "(0, 1]");
+  ExpectRefused(scene("", "follow_fraction: nan", nu), 8, hybrid + "follow_fraction", "(0, 1]");
+  ExpectRefused(scene("", "max_region_nodes: 0", nu), 8, hybrid + "max_region_nodes", "1..4096");
+  ExpectRefused(scene("", "max_region_nodes: 4097", nu), 8, hybrid + "max_region_nodes", "1..4096");
+  // Seed 001's adaptivity, on line 8.
+  const Scene adaptive = ParseScene(
+      scene("", "adaptive: true adapt_interval: 100 refine_threshold: 0.05 coarsen_threshold: 0",
+            nu),
+      "s");
+  EXPECT_TRUE(adaptive.organ(0).model().efg_hybrid().adaptive());
+  EXPECT_EQ(adaptive.organ(0).model().efg_hybrid().adapt_interval(), 100);
+  ExpectRefused(scene("", "adapt_interval: 0", nu), 8, hybrid + "adapt_interval", ">= 1");
+  ExpectRefused(scene("", "refine_threshold: 0", nu), 8, hybrid + "refine_threshold", "(0, 1]");
+  ExpectRefused(scene("", "refine_threshold: nan", nu), 8, hybrid + "refine_threshold", "(0, 1]");
+  ExpectRefused(scene("", "coarsen_threshold: 0.02", nu), 8, hybrid + "coarsen_threshold",
+                "[0, refine_threshold]");
+  ExpectRefused(scene("", "refine_threshold: 0.5 coarsen_threshold: -1", nu), 8,
+                hybrid + "coarsen_threshold", "[0, refine_threshold]");
+  // The material, on line 11: ν in (-1, 0.5); no FEM damping (the hybrid's is in its efg), no
+  // QLV terms.
+  ExpectRefused(scene("", "", "poisson_ratio: 0.5"), 11, "organ[0].material.poisson_ratio",
+                "(-1, 0.5)");
+  ExpectRefused(scene("", "", "poisson_ratio: 0.35 rayleigh_mass: 0.5"), 11,
+                "organ[0].material.rayleigh_mass", "model.efg_hybrid.efg.rayleigh_mass");
+  ExpectRefused(scene("", "", "poisson_ratio: 0.35 rayleigh_stiffness: 0.001"), 11,
+                "organ[0].material.rayleigh_stiffness", "model.efg_hybrid.efg.rayleigh_stiffness");
+  ExpectRefused(scene("", "", "poisson_ratio: 0.35 prony { gamma: 0.5 tau: 1 }"), 11,
+                "organ[0].material", "FEM model");
+  ExpectRefused(head + "    }\n  }\n  material { density: 1055 poisson_ratio: 0.35 }\n}\n", 9,
+                "organ[0].material.youngs_modulus", "> 0");
+}
+
 TEST(SceneLines, NameTheLineOfAFieldOrOfItsNearestParent) {
   SceneLines lines;
   ParseScene(kGood, "good.scene.txtpb", &lines);

@@ -194,6 +194,77 @@ TEST(Session, AnEfgOrganIsPressedByTheProbeAndGivesAForceModel) {
   EXPECT_LE(o.built.efg->Factorisations(*o.state), 2);
 }
 
+// Seed 001's hybrid liver (tests/data/scenes/liver288_efg_hybrid.scene.txtpb) runs as the EFG
+// organ does: the probe pressing its top and sliding on it meets it, moves it, and gets a pushing
+// force model from the hybrid's LocalStiffness (no FemCompliance, no cutter). The surgical region
+// follows the tool: the touched node ends up in it.
+TEST(Session, AnEfgHybridOrganIsPressedByTheProbeAndGivesAForceModel) {
+  scene::SceneLines lines;
+  const scene::Scene s = scene::LoadSceneFile(
+      std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/liver288_efg_hybrid.scene.txtpb", &lines);
+  Session session(s, lines, ".");
+  ASSERT_EQ(session.num_organs(), 1);
+  const SessionOrgan& o = session.organ(0);
+  EXPECT_EQ(o.built.model_name, "efg_hybrid");
+  ASSERT_NE(o.built.efg_hybrid, nullptr);
+  EXPECT_EQ(o.built.efg, nullptr);
+  EXPECT_EQ(o.built.fem, nullptr);
+  EXPECT_EQ(o.compliance, nullptr);
+  EXPECT_EQ(o.cutter, nullptr);
+  EXPECT_DOUBLE_EQ(session.dt(), 0.001);
+  const Eigen::Vector3d top = TopOf(session, 0);
+  int32_t top_node = 0;  // the surface node at `top`
+  for (Eigen::Index j = 0; j < o.built.triangles.size(); ++j) {
+    const int32_t i = o.built.triangles.data()[j];
+    if (o.state->positions.col(i) == top) top_node = i;
+  }
+  const mesh::Points rest = o.state->positions;
+  double slowest = 0.0;            // [s] the slowest step, reported
+  int slow = 0;                    // steps over 5 ms (a partition or factorisation), reported
+  std::vector<double> in_contact;  // [s] the other steps in contact, reported
+  for (int i = 0; i <= 300; ++i) {
+    // From 2 mm above to 4 mm below the top over 0.2 s, then 3 mm sideways over 0.1 s.
+    const double depth = -0.002 + 0.006 * std::min(i, 200) / 200.0;
+    const double slide = 0.003 * std::max(i - 200, 0) / 100.0;
+    session.SetToolCommand(
+        0,
+        At(top - depth * Eigen::Vector3d::UnitZ() + slide * Eigen::Vector3d::UnitX(), 1.0, 1 + i));
+    const auto start = std::chrono::steady_clock::now();
+    session.Step();
+    const double took =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    slowest = std::max(slowest, took);
+    slow += took > 0.005 ? 1 : 0;
+    if (took <= 0.005 && session.tool(0).force_model.in_contact) {
+      in_contact.push_back(took);
+    }
+  }
+  std::sort(in_contact.begin(), in_contact.end());
+  const models::meshless::EfgHybridModel& hybrid = *o.built.efg_hybrid;
+  std::printf(
+      "EFG hybrid liver288 pressed 4 mm and slid 3 mm in 301 steps: slowest %.1f ms, %d over "
+      "5 ms; median step in contact %.0f us, slowest %.0f us; region of %d nodes, %lld "
+      "partitions, %lld factorisations, %lld far solves\n",
+      1e3 * slowest, slow, in_contact.empty() ? 0.0 : 1e6 * in_contact[in_contact.size() / 2],
+      in_contact.empty() ? 0.0 : 1e6 * in_contact.back(), hybrid.RegionNodes(*o.state),
+      static_cast<long long>(hybrid.Partitions(*o.state)),
+      static_cast<long long>(hybrid.Factorisations(*o.state)),
+      static_cast<long long>(hybrid.FarSolves(*o.state)));
+  EXPECT_EQ(session.rejected_steps(), 0u);
+  const contact::LocalForceModel& m = session.tool(0).force_model;
+  EXPECT_TRUE(m.in_contact);
+  EXPECT_EQ(session.tool(0).force_organ, 0);
+  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+      m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
+  EXPECT_GT(f.force.z(), 0.1);  // the tissue pushes the probe up [N]
+  EXPECT_GT((o.state->positions - rest).colwise().norm().maxCoeff(), 1e-3);  // pressed in [m]
+  ASSERT_GT(o.num_attachments, 0);
+  EXPECT_GE(hybrid.Partitions(*o.state), 1);
+  EXPECT_GT(hybrid.RegionNodes(*o.state), 0);
+  EXPECT_LE(hybrid.RegionNodes(*o.state), 400);  // max_region_nodes' default
+  EXPECT_TRUE(hybrid.InRegion(*o.state, top_node)) << top_node;
+}
+
 TEST(Session, StepAllocatesNothing) {
   Session session(KidneyScene(), scene::SceneLines("kidney"), ".");
   const Eigen::Vector3d top = TopOf(session, 0);

@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <numeric>
@@ -254,6 +255,68 @@ analysis { static_solve {} }
   EXPECT_NEAR(r.reactions[0].force.head<2>().norm(), 0.0, 1e-9);
 }
 
+// The EFG hybrid (efg_hybrid) in a static analysis, through EfgHybridModel::SolveStatic: its
+// statics are exact by construction (the surgical region's condensed system plus the far
+// region's particular response: efg_hybrid_model.h), so on seed 001's liver under the EFG test's
+// loads — its weight; a force ramped by its history, output at half and full ramp — and a
+// pressure on its top (nodal forces, as the EFG gets it) it gives the EFG's equilibrium: the
+// largest displacement to 1e-6 relative, and so the field and the supports' reactions.
+TEST(SolveStaticEfgHybrid, Liver288GivesTheEfgEquilibriumUnderItsWeightARampedForceAndAPressure) {
+  const auto organ = [](const std::string& model) {
+    return "organ {\n  id: \"liver\"\n  builtin: \"liver288\"\n  model { " + model +
+           " }\n  material { density: 1055 youngs_modulus: 5000 poisson_ratio: 0.35 }\n"
+           "  fixed { box { min { x: -1 y: -1 z: -1 } max { x: 1 y: 1 z: -0.033 } } }\n}\n"
+           "analysis { static_solve {} }\n";
+  };
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"weight", "gravity { z: -9.81 }\n"},
+      {"ramped force",
+       "load { organ: \"liver\" region { sphere { center { x: 0 y: 0 z: 0.06 } radius: 0.012 } } "
+       "force { z: -1 }\n  history { t: 0 scale: 0 } history { t: 1 scale: 1 } }\n"
+       "output { time: 0.5 time: 1 }\n"},
+      {"pressure",
+       "load { organ: \"liver\"\n"
+       "  region { box { min { x: -1 y: -1 z: 0.03 } max { x: 1 y: 1 z: 1 } } } pressure: 100 }\n"},
+  };
+  for (const auto& [name, loads] : cases) {
+    SCOPED_TRACE(name);
+    const SolveSummary efg =
+        Solve(testing::MakeTempDir("solve_efg_hybrid_efg"), Scene(organ("efg {}") + loads));
+    const SolveSummary hybrid = Solve(testing::MakeTempDir("solve_efg_hybrid"),
+                                      Scene(organ("efg_hybrid { region_radius: 0.05 }") + loads));
+    const OrganSummary& e = efg.organs.at(0);
+    const OrganSummary& h = hybrid.organs.at(0);
+    EXPECT_EQ(h.model, "efg_hybrid");
+    EXPECT_TRUE(efg.converged);
+    EXPECT_TRUE(hybrid.converged);
+    EXPECT_EQ(h.newton_iterations, e.newton_iterations);  // one solve per output time
+    std::printf(
+        "liver288 static, %s: max displacement efg %.12e m, efg_hybrid %.12e m (relative "
+        "difference %.2e); final residual efg %.2e, efg_hybrid %.2e\n",
+        name.c_str(), efg.max_displacement_m, hybrid.max_displacement_m,
+        std::abs(hybrid.max_displacement_m - efg.max_displacement_m) / efg.max_displacement_m,
+        e.final_residual, h.final_residual);
+    ASSERT_GT(efg.max_displacement_m, 1e-5);
+    EXPECT_NEAR(hybrid.max_displacement_m, efg.max_displacement_m, 1e-6 * efg.max_displacement_m);
+    ASSERT_EQ(h.outputs.size(), e.outputs.size());
+    for (size_t k = 0; k < e.outputs.size(); ++k) {
+      EXPECT_NEAR(h.outputs[k].max_displacement_m, e.outputs[k].max_displacement_m,
+                  1e-6 * e.outputs[k].max_displacement_m)
+          << k;
+      const VtuArrays ue = ReadVtu(e.outputs[k].file, "displacement");
+      const VtuArrays uh = ReadVtu(h.outputs[k].file, "displacement");
+      ASSERT_EQ(uh.values.size(), ue.values.size());
+      for (size_t i = 0; i < ue.values.size(); ++i) {
+        EXPECT_NEAR(uh.values[i], ue.values[i], 1e-6 * e.outputs[k].max_displacement_m) << i;
+      }
+    }
+    ASSERT_EQ(h.reactions.size(), 1u);
+    ASSERT_EQ(e.reactions.size(), 1u);
+    EXPECT_LT((h.reactions[0].force - e.reactions[0].force).norm(),
+              1e-6 * e.reactions[0].force.norm());
+  }
+}
+
 // A bar pulled by a constant force: with G(t) = 0.5 + 0.5 e^{-t/τ} (τ = 1 s) the creep is that
 // of a standard linear solid, u(t) = u_e (2 - e^{-t/(2τ)}), u_e the response with the
 // instantaneous modulus (an elastic static solve).
@@ -347,6 +410,29 @@ TEST(SolveDynamic, EfgSettlesTowardsTheStaticSolution) {
               0.02 * statics.max_displacement_m);
 }
 
+// The EFG hybrid in a dynamic analysis (its own Step: implicit Euler on the surgical region, the
+// far region following quasi-statically) settles, overdamped, on the static solution.
+TEST(SolveDynamic, EfgHybridSettlesTowardsTheStaticSolution) {
+  scene::Scene s = scene::DefaultScene("plate192");
+  scene::Organ& organ = *s.mutable_organ(0);
+  organ.mutable_model()->clear_kind();
+  scene::EfgHybrid& hybrid = *organ.mutable_model()->mutable_efg_hybrid();
+  hybrid.mutable_efg()->set_rayleigh_mass(30.0);  // [1/s], overdamped
+  hybrid.set_region_radius(0.05);
+  const SolveSummary statics = RunSolve(s, scene::SceneLines("p"), {});
+  EXPECT_EQ(statics.organs.at(0).model, "efg_hybrid");
+  EXPECT_TRUE(statics.converged);
+  organ.mutable_model()->set_dt(0.01);
+  s.mutable_analysis()->mutable_dynamic()->set_end_time(3.0);
+  const SolveSummary dynamics = RunSolve(s, scene::SceneLines("p"), {});
+  EXPECT_TRUE(dynamics.converged);
+  EXPECT_EQ(dynamics.organs.at(0).steps, 300);
+  EXPECT_EQ(dynamics.organs.at(0).rejected_steps, 0);
+  EXPECT_GT(statics.max_displacement_m, 0.0);
+  EXPECT_NEAR(dynamics.max_displacement_m, statics.max_displacement_m,
+              0.02 * statics.max_displacement_m);
+}
+
 // Faults only the mesh reveals: each names the field and the line of the scene.
 struct Fault {
   const char* scene;
@@ -412,6 +498,19 @@ TEST(SolveFaults, NamedByFieldAndLine) {
        " fixed { nodes { id: [0, 1, 2, 3] } }\n}\n"
        "analysis { quasi_static { end_time: 1 dt: 0.1 } }\n",
        "efg is elastic"},
+      {"organ {\n id: \"s\"\n file: \"skin.obj\"\n model { efg_hybrid {} }\n"
+       " material { density: 1 youngs_modulus: 1 poisson_ratio: 0.3 }\n}\n"
+       "analysis { static_solve {} }\n",
+       "FEM, EFG and reduced models need a volume mesh"},
+      {"organ {\n id: \"s\"\n builtin: \"tissue45\"\n model { efg_hybrid {} }\n"
+       " material { density: 1 youngs_modulus: 1 poisson_ratio: 0.3 }\n}\n"
+       "analysis { dynamic { end_time: 1 } }\n",
+       "open surface"},
+      {"organ {\n id: \"s\"\n builtin: \"plate192\"\n model { efg_hybrid {} }\n"
+       " material { density: 1 youngs_modulus: 1 poisson_ratio: 0.3 }\n"
+       " fixed { nodes { id: [0, 1, 2, 3] } }\n}\n"
+       "analysis { quasi_static { end_time: 1 dt: 0.1 } }\n",
+       "efg_hybrid is elastic"},
       {"organ {\n id: \"s\"\n file: \"bar.vtu\"\n model { efg { support_neighbours: 50 } }\n"
        " material { density: 1 youngs_modulus: 1 poisson_ratio: 0.3 }\n}\n"
        "analysis { dynamic { end_time: 1 } }\n",
