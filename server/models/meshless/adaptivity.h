@@ -18,6 +18,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cstdint>
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
@@ -34,10 +35,32 @@ struct CellIntensity {
   double r_min = 0.0, r_max = 0.0;  // [J/m]
 };
 
-// For nodal parameters û (3 × num_nodes [m]) of an EFG field on `tets` (4 × num_tets indices
-// into the shape functions' nodes), with Lamé λ, μ [Pa]. Allocates (MLS evaluations). Throws
-// std::invalid_argument for sizes that do not match, an index out of range, or a non-finite
-// parameter.
+// The cells' shape-function gradients at their Gauss points, evaluated once (35 ms on liver288,
+// 0.6 s on liver4055; memory 28 bytes per Gauss point and covering node: ~4 MB on liver288,
+// ~40 MB on liver4055): an intensity is then sparse products, 1.7 ms on liver288 and 33 ms on
+// liver4055 (instead of ~25 ms and ~0.4 s of MLS evaluations).
+class CellIntensityEvaluator {
+ public:
+  // `tets`: 4 × num_tets indices into the shape functions' nodes. Throws std::invalid_argument
+  // for an index out of range or a flat cell.
+  CellIntensityEvaluator(const MlsShapeFunctions& shape, const mesh::Tetrahedra& tets);
+  // For nodal parameters û (3 × num_nodes [m]), with Lamé λ, μ [Pa]. Allocates (the result).
+  // Throws std::invalid_argument for a size that does not match or a non-finite parameter.
+  CellIntensity Compute(const mesh::Points& parameters, double lambda, double mu) const;
+
+ private:
+  int32_t num_nodes_ = 0;
+  // Gauss point g = 4 t + k of cell t: its covering nodes and ∇φ at start_[g] .. start_[g + 1).
+  std::vector<int64_t> start_;
+  std::vector<int32_t> node_;
+  std::vector<Eigen::Vector3d> gradient_;
+  // Per cell: the rows of the linear fit's inverse that give ∇DSE from the four values (3 × 4),
+  // and its volume [m³].
+  std::vector<Eigen::Matrix<double, 3, 4>> slope_;
+  std::vector<double> volume_;
+};
+
+// The same in one call (builds the evaluator: for a single use).
 CellIntensity ComputeCellIntensity(const MlsShapeFunctions& shape, const mesh::Tetrahedra& tets,
                                    const mesh::Points& parameters, double lambda, double mu);
 

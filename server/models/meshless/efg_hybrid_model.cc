@@ -143,6 +143,10 @@ std::unique_ptr<EfgHybridModel> EfgHybridModel::FromTetMesh(const mesh::TetMesh&
   model->parameters_ = parameters;
   model->centroid_ = model->efg_->rest_.rowwise().mean();
   model->tets_ = mesh.tetrahedra;
+  if (parameters.adaptive) {
+    model->intensity_ =
+        std::make_unique<CellIntensityEvaluator>(model->efg_->shape_functions(), model->tets_);
+  }
   model->set_speed_limit(parameters.efg.speed_limit);
   return model;
 }
@@ -772,8 +776,7 @@ void EfgHybridModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base)
 bool EfgHybridModel::Adapt(TissueState* base) const {
   auto* st = static_cast<HybridState*>(base);
   ++st->adaptations;
-  const CellIntensity cells = ComputeCellIntensity(efg_->shape_functions(), tets_,
-                                                   NodalParameters(*st), efg_->lambda_, efg_->mu_);
+  const CellIntensity cells = intensity_->Compute(NodalParameters(*st), efg_->lambda_, efg_->mu_);
   // Refine: cells at or above refine_threshold; keep: nodes already refined whose cells stay
   // at or above coarsen_threshold.
   std::vector<uint8_t> refined(st->refined.size(), 0);

@@ -146,6 +146,13 @@ TEST(CellIntensity, RefusesMismatchedSizesIndicesAndNaN) {
   mesh::Tetrahedra bad = mesh.tetrahedra;
   bad(2, 7) = static_cast<int32_t>(mesh.vertices.cols());
   EXPECT_THROW(ComputeCellIntensity(shape, bad, good, 1, 1), std::invalid_argument);
+  mesh::Tetrahedra flat = mesh.tetrahedra;
+  flat(3, 0) = flat(0, 0);  // a repeated corner: zero volume
+  EXPECT_THROW(CellIntensityEvaluator(shape, flat), std::invalid_argument);
+  // One evaluator serves many fields and refuses a wrong one too.
+  const CellIntensityEvaluator evaluator(shape, mesh.tetrahedra);
+  EXPECT_THROW(evaluator.Compute(mesh::Points::Zero(3, 5), 1, 1), std::invalid_argument);
+  EXPECT_NO_THROW(evaluator.Compute(good, 1, 1));
 }
 
 // Seed 001's adaptive hybrid under its 5.7 N pull: the region grows where the intensity is

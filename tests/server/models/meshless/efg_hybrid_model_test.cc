@@ -152,6 +152,7 @@ std::string InvalidArgumentOf(const mesh::TetMesh& mesh, const EfgHybridParamete
 // EfgParameters. The seed accepts ±0.01 cm at the load node; the condensation is exact, so the
 // whole field must meet it too.
 TEST(EfgHybridModel, StaticPullAndPressMatchPureEfgWithinATenthOfAMillimetre) {
+  if (somasim::testing::kUnderSanitizer) GTEST_SKIP() << "heavy validation: Release build only";
   const LiverCase liver = Liver288();
   const auto efg = EfgModel::FromTetMesh(liver.mesh, EfgParameters{});
   const auto hybrid = EfgHybridModel::FromTetMesh(liver.mesh, RegionAtLoadNode(liver, 0.05));
@@ -190,6 +191,7 @@ TEST(EfgHybridModel, StaticPullAndPressMatchPureEfgWithinATenthOfAMillimetre) {
 // Exactness by construction, not by a large region: from a region of a few nodes to one of a
 // third of the organ, the load node's static displacement is pure EFG's.
 TEST(EfgHybridModel, HybridStaticsEqualTheEfgForEveryRadius) {
+  if (somasim::testing::kUnderSanitizer) GTEST_SKIP() << "heavy validation: Release build only";
   const LiverCase liver = Liver288();
   const auto efg = EfgModel::FromTetMesh(liver.mesh, EfgParameters{});
   const mesh::Points forces = LoadAtTop(liver, 5.7);
@@ -356,6 +358,7 @@ TEST(EfgHybridModel, DisplacementGradientIsContinuousAcrossTheTransition) {
 // point; with a 3.5 cm region (16 nodes: Φ_I reaches far parameters) the spring acts through T
 // only (a Guyan approximation), within a few percent.
 TEST(EfgHybridModel, GraspSettlesWherePureEfgSettles) {
+  if (somasim::testing::kUnderSanitizer) GTEST_SKIP() << "heavy validation: Release build only";
   const LiverCase liver = Liver288();
   EfgParameters efg_parameters;
   efg_parameters.rayleigh_mass = 20.0;  // [1/s]

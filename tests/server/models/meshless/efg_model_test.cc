@@ -523,6 +523,7 @@ TEST(EfgModel, Liver288PullAndPressCurveIsFiniteAndMonotone) {
 // With α = 10 /s the slowest mode (ω ≈ √(g / sag) ≈ 7.5 rad/s) decays as e^{-α t / 2}: 3 s
 // leave ~3e-7 of the initial transient. (The default α = 2 /s would leave ~2 %.)
 TEST(EfgModel, ImplicitDynamicsSettlesOnTheStaticSolution) {
+  if (somasim::testing::kUnderSanitizer) GTEST_SKIP() << "heavy validation: Release build only";
   const LiverCase liver = Liver288();
   EfgParameters p;
   p.rayleigh_mass = 10.0;
