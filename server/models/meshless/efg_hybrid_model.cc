@@ -681,33 +681,10 @@ void EfgHybridModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base)
   auto* st = static_cast<HybridState*>(base);
   const int32_t n = num_nodes();
   const mesh::Points& rest = efg_->rest_;
-  const auto in_range = [n](int32_t node) { return node >= 0 && node < n; };
-  if (loads.external_forces != nullptr &&
-      (loads.external_forces->cols() != n || !loads.external_forces->allFinite())) {
-    Refuse("SolveStatic: external_forces must be finite, 3 x num_nodes");
-  }
   if (loads.parameter_forces != nullptr) {
     Refuse("SolveStatic: parameter_forces (distributed loads) are not supported by the hybrid");
   }
-  if (!loads.gravity.allFinite()) Refuse("SolveStatic: gravity must be finite");
-  for (const int32_t node : loads.fixed_nodes) {
-    if (!in_range(node))
-      Refuse("SolveStatic: fixed node " + std::to_string(node) + " out of range");
-  }
-  for (const int32_t node : loads.prescribed_nodes) {
-    if (!in_range(node)) {
-      Refuse("SolveStatic: prescribed node " + std::to_string(node) + " out of range");
-    }
-  }
-  if (!loads.prescribed_nodes.empty() &&
-      (loads.prescribed_positions == nullptr ||
-       loads.prescribed_positions->cols() != Index(loads.prescribed_nodes.size()) ||
-       !loads.prescribed_positions->allFinite())) {
-    Refuse("SolveStatic: prescribed_positions must be finite, 3 x prescribed_nodes.size()");
-  }
-  if (loads.fixed_nodes.empty() && loads.prescribed_nodes.empty()) {
-    Refuse("SolveStatic: needs fixed or prescribed nodes (a free body has no equilibrium)");
-  }
+  CheckStaticLoads(loads, n, "efg_hybrid");
   // Supports: fixed at rest, prescribed at their positions.
   std::fill(st->support.begin(), st->support.end(), 0.0);
   mesh::Points h = mesh::Points::Zero(3, n);

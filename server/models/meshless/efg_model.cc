@@ -602,26 +602,26 @@ EnergyReport EfgModel::Energy(const TissueState& state, const Vector3d& gravity)
   return report;
 }
 
-void EfgModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base) const {
-  auto* st = static_cast<EfgState*>(base);
-  const int32_t n = num_nodes();
+void CheckStaticLoads(const EfgStaticLoads& loads, int32_t n, const std::string& model) {
+  const auto refuse = [&model](const std::string& what) {
+    throw std::invalid_argument(model + ": SolveStatic: " + what);
+  };
   const auto in_range = [n](int32_t node) { return node >= 0 && node < n; };
   if (loads.external_forces != nullptr &&
       (loads.external_forces->cols() != n || !loads.external_forces->allFinite())) {
-    Refuse("SolveStatic: external_forces must be finite, 3 x num_nodes");
+    refuse("external_forces must be finite, 3 x num_nodes");
   }
   if (loads.parameter_forces != nullptr &&
       (loads.parameter_forces->cols() != n || !loads.parameter_forces->allFinite())) {
-    Refuse("SolveStatic: parameter_forces must be finite, 3 x num_nodes");
+    refuse("parameter_forces must be finite, 3 x num_nodes");
   }
-  if (!loads.gravity.allFinite()) Refuse("SolveStatic: gravity must be finite");
+  if (!loads.gravity.allFinite()) refuse("gravity must be finite");
   for (const int32_t node : loads.fixed_nodes) {
-    if (!in_range(node))
-      Refuse("SolveStatic: fixed node " + std::to_string(node) + " out of range");
+    if (!in_range(node)) refuse("fixed node " + std::to_string(node) + " out of range");
   }
   for (const int32_t node : loads.prescribed_nodes) {
     if (!in_range(node)) {
-      Refuse("SolveStatic: prescribed node " + std::to_string(node) + " out of range");
+      refuse("prescribed node " + std::to_string(node) + " out of range");
     }
   }
   if (!loads.prescribed_nodes.empty() &&
@@ -629,11 +629,17 @@ void EfgModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base) const
        loads.prescribed_positions->cols() !=
            static_cast<Eigen::Index>(loads.prescribed_nodes.size()) ||
        !loads.prescribed_positions->allFinite())) {
-    Refuse("SolveStatic: prescribed_positions must be finite, 3 x prescribed_nodes.size()");
+    refuse("prescribed_positions must be finite, 3 x prescribed_nodes.size()");
   }
   if (loads.fixed_nodes.empty() && loads.prescribed_nodes.empty()) {
-    Refuse("SolveStatic: needs fixed or prescribed nodes (a free body has no equilibrium)");
+    refuse("needs fixed or prescribed nodes (a free body has no equilibrium)");
   }
+}
+
+void EfgModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base) const {
+  auto* st = static_cast<EfgState*>(base);
+  const int32_t n = num_nodes();
+  CheckStaticLoads(loads, n, "efg");
   // Penalty springs κ: fixed at rest (target displacement 0), prescribed at their positions.
   std::vector<double> s(size_t(n), 0.0);
   mesh::Points h = mesh::Points::Zero(3, n);

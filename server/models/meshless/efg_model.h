@@ -66,6 +66,7 @@
 #include <cstdint>
 #include <memory>
 #include <span>
+#include <string>
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
@@ -105,6 +106,10 @@ struct EfgStaticLoads {
   std::span<const int32_t> prescribed_nodes;           // moved to prescribed_positions
   const mesh::Points* prescribed_positions = nullptr;  // [m], 3 × prescribed_nodes.size()
 };
+
+// Throws std::invalid_argument "<model>: SolveStatic: ..." naming the first bad load (a size, a
+// non-finite value, an index out of range, no held node) for a model of num_nodes nodes.
+void CheckStaticLoads(const EfgStaticLoads& loads, int32_t num_nodes, const std::string& model);
 
 class EfgModel final : public TissueModel {
  public:
