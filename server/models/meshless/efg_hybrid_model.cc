@@ -97,6 +97,9 @@ class HybridState final : public TissueState {
   std::vector<int32_t> support_nodes;           // this step's supported nodes, distinct
   std::vector<uint8_t> support_listed;          // num_nodes
   bool has_supports = false;
+  // The shift σ of K̃ = K + P_s + σ M̂: 0 with supports, kFreeShift for a free body or when a cut
+  // has severed a piece without supports (K + P_s singular); statics are exact only for 0.
+  double shift = 0.0;
   bool static_valid = false;  // static_factor holds K̃ for cached_support
   fem::LowerCsc system;
   std::vector<double> blocks;
@@ -115,6 +118,12 @@ class HybridState final : public TissueState {
   // Adaptivity: nodes the intensity added to the region (num_nodes), steps since the last one.
   std::vector<uint8_t> refined;
   int32_t steps_since_adapt = 0;
+  // Cutting: the cut EFG values (nullptr before the first cut); a cut since the last step (the
+  // next step factorises K̃ and partitions again) and the field it carries over (parameters of
+  // the physical field under the cut Φ, 3 × num_nodes each) when `carry`.
+  std::unique_ptr<EfgCutValues> cut;
+  bool cut_pending = false, carry = false;
+  mesh::Points carried_params, carried_vparams;
 
  protected:
   void SaveGood() override {
@@ -200,10 +209,20 @@ bool EfgHybridModel::FactoriseStatic(TissueState* base) const {
   auto* st = static_cast<HybridState*>(base);
   st->has_supports =
       std::any_of(st->support.begin(), st->support.end(), [](double s) { return s > 0.0; });
-  efg_->AssembleSystem(1.0, st->has_supports ? 0.0 : kFreeShift, 1.0, st->support.data(),
-                       st->blocks.data(), st->system.values.data());
+  const EfgModel::Values values = efg_->ValuesOf(st->cut.get());
+  st->shift = st->has_supports ? 0.0 : kFreeShift;
+  efg_->AssembleSystem(values, 1.0, st->shift, 1.0, st->support.data(), st->blocks.data(),
+                       st->system.values.data());
   st->static_valid = st->static_factor->Factorise(st->system);
   ++st->factorisations;
+  if (!st->static_valid && st->shift == 0.0 && st->cut != nullptr) {
+    // A cut severed a piece the supports do not hold: condense with the shifted K̃.
+    st->shift = kFreeShift;
+    efg_->AssembleSystem(values, 1.0, st->shift, 1.0, st->support.data(), st->blocks.data(),
+                         st->system.values.data());
+    st->static_valid = st->static_factor->Factorise(st->system);
+    ++st->factorisations;
+  }
   std::copy(st->support.begin(), st->support.end(), st->cached_support.begin());
   return st->static_valid;
 }
@@ -213,7 +232,8 @@ bool EfgHybridModel::FactoriseStatic(TissueState* base) const {
 void EfgHybridModel::ParticularResponse(const double* node_loads, double* offsets,
                                         TissueState* base) const {
   auto* st = static_cast<HybridState*>(base);
-  efg_->MultiplyPhiTransposed(node_loads, st->full_rhs.data());
+  const EfgModel::Values values = efg_->ValuesOf(st->cut.get());
+  efg_->MultiplyPhiTransposed(values, node_loads, st->full_rhs.data());
   st->static_factor->Solve(st->full_rhs.data(), st->full_solution.data());
   const auto k3 = Index(3 * st->kept.size());
   for (size_t a = 0; a < st->kept.size(); ++a) {
@@ -221,7 +241,7 @@ void EfgHybridModel::ParticularResponse(const double* node_loads, double* offset
       st->work[Index(3 * a) + c] = st->full_solution.data()[3 * size_t(st->kept[a]) + size_t(c)];
     }
   }
-  efg_->MultiplyPhi(st->full_solution.data(), st->full_phi.data());
+  efg_->MultiplyPhi(values, st->full_solution.data(), st->full_phi.data());
   const Index rows = 3 * Index(num_nodes());
   const auto q_p = st->work.head(k3);
   for (Index r = 0; r < rows; ++r) {
@@ -265,14 +285,14 @@ void EfgHybridModel::Partition(const Vector3d& centre, TissueState* base) const 
   const MatrixXd s_sym = 0.5 * (s + s.transpose());
   st->t.noalias() = y * s_sym;
   // D = Φ T by node rows.
+  const double* phi_value = efg_->ValuesOf(st->cut.get()).phi;
   st->d.setZero(rows, k3);
   for (int32_t i = 0; i < n; ++i) {
     uint8_t far = 0;
     for (int32_t a = efg_->phi_start_[size_t(i)]; a < efg_->phi_start_[size_t(i) + 1]; ++a) {
       const int32_t j = efg_->phi_node_[size_t(a)];
       far |= uint8_t(st->kept_of[size_t(j)] < 0);
-      st->d.middleRows<3>(3 * Index(i)) +=
-          efg_->phi_value_[size_t(a)] * st->t.middleRows<3>(3 * Index(j));
+      st->d.middleRows<3>(3 * Index(i)) += phi_value[size_t(a)] * st->t.middleRows<3>(3 * Index(j));
     }
     st->touches_far[size_t(i)] = far;
   }
@@ -293,7 +313,7 @@ void EfgHybridModel::Partition(const Vector3d& centre, TissueState* base) const 
     st->p_r.noalias() += support * (di.transpose() * di);
   }
   st->k_r = s_sym - st->p_r;
-  if (!st->has_supports) st->k_r -= kFreeShift * st->m_r;
+  if (st->shift != 0.0) st->k_r -= st->shift * st->m_r;
   // Per-step and low-rank buffers.
   st->q.setZero(k3);
   st->vq.setZero(k3);
@@ -317,7 +337,7 @@ void EfgHybridModel::Partition(const Vector3d& centre, TissueState* base) const 
   // Gravity's particular far response, per unit component (none for a free body).
   st->offset_g.setZero(rows, 3);
   st->param_offset_g.setZero(rows, 3);
-  if (st->has_supports) {
+  if (st->has_supports && st->shift == 0.0) {
     mesh::Points unit_gravity(3, n);
     for (int c = 0; c < 3; ++c) {
       unit_gravity.setZero();
@@ -454,7 +474,9 @@ void EfgHybridModel::Advance(const StepInputs& inputs, TissueState* base) const 
 
   // 2. The static factor of K̃ (when the supports change), then the region.
   bool need_partition = !st->partitioned;
-  if (!std::equal(st->support.begin(), st->support.end(), st->cached_support.begin())) {
+  if (st->cut_pending ||
+      !std::equal(st->support.begin(), st->support.end(), st->cached_support.begin())) {
+    st->cut_pending = false;
     if (!FactoriseStatic(st)) {
       fail();
       return;
@@ -500,7 +522,11 @@ void EfgHybridModel::Advance(const StepInputs& inputs, TissueState* base) const 
   if (need_partition) {
     // The field carries over by its parameters: the new q are the old û at the new region.
     mesh::Points params, vparams;
-    if (st->partitioned) {
+    if (st->carry) {  // a cut's: the physical field under the cut Φ
+      params = st->carried_params;
+      vparams = st->carried_vparams;
+      st->carry = false;
+    } else if (st->partitioned) {
       params = NodalParameters(*st);
       const VectorXd v = st->t * st->vq;
       vparams = Eigen::Map<const mesh::Points>(v.data(), 3, n);
@@ -566,7 +592,7 @@ void EfgHybridModel::Advance(const StepInputs& inputs, TissueState* base) const 
     any_far = true;
   }
   if (st->far_loads != st->cached_far_loads) {  // NaN after a partition: always different
-    if (any_far && st->has_supports) {
+    if (any_far && st->has_supports && st->shift == 0.0) {
       ParticularResponse(st->far_loads.data(), st->offset_l.data(), st);
       std::copy(st->full_solution.data(), st->full_solution.data() + 3 * size_t(n),
                 st->param_offset_l.data());
@@ -662,12 +688,35 @@ mesh::Points EfgHybridModel::NodalParameters(const TissueState& base) const {
 }
 
 void EfgHybridModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
-  efg_->ForcesOfParameters(NodalParameters(state), forces);
+  efg_->ForcesOfParameters(NodalParameters(state), forces,
+                           static_cast<const HybridState&>(state).cut.get());
+}
+
+const EfgCutValues* EfgHybridModel::CutOf(const TissueState& state) const {
+  return static_cast<const HybridState&>(state).cut.get();
+}
+
+int32_t EfgHybridModel::Cut(const SweptQuad& sweep, TissueState* base) const {
+  auto* st = static_cast<HybridState*>(base);
+  if (!sweep.AllFinite()) return 0;
+  if (st->cut == nullptr) st->cut = std::make_unique<EfgCutValues>();
+  const int64_t hidden = efg_->ApplyCut(efg_->PullBack(sweep, st->positions), st->cut.get());
+  if (hidden == 0) return 0;
+  // The next step factorises the cut K̃ and partitions again; the physical field carries over.
+  if (st->partitioned) {
+    const mesh::Points displacements = st->positions - efg_->rest_;
+    st->carry =
+        efg_->ParametersOfDisplacements(displacements, &st->carried_params, st->cut.get()) &&
+        efg_->ParametersOfDisplacements(st->velocities, &st->carried_vparams, st->cut.get());
+  }
+  st->cut_pending = true;
+  return static_cast<int32_t>(std::min<int64_t>(hidden, std::numeric_limits<int32_t>::max()));
 }
 
 EnergyReport EfgHybridModel::Energy(const TissueState& state, const Vector3d& gravity) const {
   EnergyReport report;
-  report.elastic = efg_->ElasticEnergyOfParameters(NodalParameters(state));
+  report.elastic = efg_->ElasticEnergyOfParameters(
+      NodalParameters(state), static_cast<const HybridState&>(state).cut.get());
   for (Index i = 0; i < state.positions.cols(); ++i) {
     const double m = efg_->mass_[size_t(i)];
     report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
@@ -728,7 +777,7 @@ void EfgHybridModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base)
       any_far = true;
     }
   }
-  if (any_far) {
+  if (any_far && st->shift == 0.0) {
     ParticularResponse(st->far_loads.data(), st->offset_l.data(), st);
     std::copy(st->full_solution.data(), st->full_solution.data() + rows, st->param_offset_l.data());
     ++st->far_solves;

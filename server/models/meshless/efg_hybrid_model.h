@@ -107,7 +107,14 @@ class EfgHybridModel final : public TissueModel {
   // From the state's full parameter field û = T q (allocates), as EfgModel's.
   void InternalForces(const TissueState& state, mesh::Points* forces) const override;
   EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
-  bool SupportsCutting() const override { return false; }
+  bool SupportsCutting() const override { return true; }
+  // The cut hook: EfgModel's visibility criterion on the whole organ's EFG (the surgical and
+  // the condensed region are one MLS field, so a cut anywhere separates both); the next step
+  // factorises the cut K̃ and partitions again (≈ the cost of a region rebuild), carrying the
+  // physical field over. Returns the (node, point) pairs hidden. Allocates.
+  int32_t Cut(const SweptQuad& sweep, TissueState* state) const override;
+  // The state's cut, or nullptr before its first.
+  const EfgCutValues* CutOf(const TissueState& state) const;
 
   // Static equilibrium through the hybrid's own reduced system (partitions for these supports
   // around the region centre, or the largest load's node; allocates): q = S⁻¹ Dᵀ f plus the

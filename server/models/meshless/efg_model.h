@@ -60,6 +60,25 @@
 //    makes every step with an attachment take that path, as before the update existed). The
 //    update is exact algebra: the tests find it equal to that path to ~3e-13 (relative).
 // A step that factorises nothing allocates nothing. Factorisations() counts the factorisations.
+//
+// Cutting (issue 13, seed 001: meshless regions suit cutting because no element connectivity
+// has to be repaired): the visibility criterion (Belytschko, Lu & Gu 1994; Organ et al. 1996).
+// The cut surface is a set of triangles in the REFERENCE configuration; a node J stops
+// covering a point x when the segment X_J–x crosses the surface, so nodes on opposite sides of
+// a cut stop interacting. Cut() pulls the blade's swept quad back to the reference
+// configuration (each corner moved by the inverse-distance mean displacement of its 4 nearest
+// nodes), adds its two triangles, and re-evaluates the shape functions at the Gauss points and
+// node points some of whose segments cross them: their old contributions to K, Φ and M̂ leave,
+// the new ones enter (a cut only hides nodes, so every sparsity pattern and the symbolic
+// analysis keep). A point left with fewer than 4 visible supports, or an ill-conditioned
+// moment matrix, cannot carry a linear basis: a Gauss point is dropped from the integration
+// (its volume no longer contributes stiffness), a node point's Φ row falls back to e_I (the
+// node then moves with its own parameter); both are counted. The state carries the cut (its
+// own copies of Φ, K, M̂: a snapshot or replay carries it, the model stays read-only); the
+// state's physical positions and velocities are kept across a cut (the parameters follow,
+// û = Φ⁻¹ u with the new Φ), so the tissue does not jump, and the next step factorises again.
+// A cut allocates and costs the re-evaluations plus one factorisation: not for every tick of a
+// long incision on a large organ (see docs/models.md for the measured costs).
 #pragma once
 
 #include <Eigen/Core>
@@ -93,6 +112,22 @@ struct EfgParameters {
   // costs MakeState 3 × 3·num_nodes doubles (64 on liver4055: ~19 MB per state).
   int max_low_rank_nodes = 64;
   static constexpr int kMaxLowRankNodes = 1024;
+};
+
+// What cuts have changed in an EFG (EfgModel::ApplyCut): the cut surface and the matrices its
+// visibility criterion changes, on the model's fixed patterns. Owned by a state (EfgModel's,
+// or the hybrid's).
+struct EfgCutValues {
+  std::vector<Eigen::Vector3d> triangles;  // [m], reference configuration, 3 vertices each
+  std::vector<double> phi_value;           // Φ's entries on Φ's pattern
+  std::vector<double> k_blocks;            // K [N/m], 9 × blocks
+  std::vector<double> m_blocks;            // M̂ [kg], blocks
+  std::vector<uint8_t> dropped;            // per Gauss point: 1 once it cannot be evaluated
+  std::vector<uint8_t> detached;           // per node point: 1 once its Φ row is e_I
+  int64_t hidden_pairs = 0;                // (node, point) pairs hidden, Gauss and node points
+  int64_t dropped_points = 0;              // Gauss points dropped
+  int64_t detached_rows = 0;               // node points whose Φ row fell back to e_I
+  int64_t version = 0;                     // +1 per change
 };
 
 // What SolveStatic holds and loads (one linear solve).
@@ -138,7 +173,18 @@ class EfgModel final : public TissueModel {
   void InternalForces(const TissueState& state, mesh::Points* forces) const override;
   // kinetic ½ Σ m_I |v_I|², elastic ½ ûᵀ K û (û from the state's positions), gravity -Σ m_I g·x_I.
   EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
-  bool SupportsCutting() const override { return false; }
+  bool SupportsCutting() const override { return true; }
+  // The cut hook (see the top of this file): returns the (node, point) pairs the sweep hid, 0
+  // for a sweep that crosses none or has a non-finite corner. Allocates.
+  int32_t Cut(const SweptQuad& sweep, TissueState* state) const override;
+  // Cut's two parts, for the hybrid. PullBack: the sweep's corners in the reference
+  // configuration of a body at `positions` (3 × num_nodes). ApplyCut: adds a reference sweep's
+  // two triangles to `cut` (filled with the model's own values first when empty) and updates
+  // the values they change; returns the pairs hidden (0: nothing changed, version kept).
+  SweptQuad PullBack(const SweptQuad& sweep, const mesh::Points& positions) const;
+  int64_t ApplyCut(const SweptQuad& reference_sweep, EfgCutValues* cut) const;
+  // The state's cut, or nullptr before its first.
+  const EfgCutValues* CutOf(const TissueState& state) const;
 
   // Static equilibrium (K + P) û = f̂ (one factorisation and solve; allocates): writes the
   // physical positions and û into the state and zeroes the velocities. Needs enough held nodes
@@ -155,16 +201,24 @@ class EfgModel final : public TissueModel {
   int64_t stiffness_blocks() const { return static_cast<int64_t>(block_row_.size()); }
   // The state's nodal parameters û [m], 3 × num_nodes.
   const mesh::Points& NodalParameters(const TissueState& state) const;
-  // u(x) = Σ φ_J(x) û_J and its gradient ∇u (∂u_i/∂x_j) at a point x [m], for the state's û.
-  // Allocates (an MLS evaluation).
+  // u(x) = Σ φ_J(x) û_J and its gradient ∇u (∂u_i/∂x_j) at a point x [m], for the state's û
+  // (and its cut's visibility). Allocates (an MLS evaluation).
   void DisplacementAt(const TissueState& state, const Eigen::Vector3d& x, Eigen::Vector3d* u,
                       Eigen::Matrix3d* gradient) const;
   // For a parameter field û (3 × num_nodes): the elastic energy ½ ûᵀ K û [J], and the physical
-  // node-point forces f = -Φ⁻ᵀ K û [N] (3 × num_nodes). Allocate.
-  double ElasticEnergyOfParameters(const mesh::Points& parameters) const;
-  void ForcesOfParameters(const mesh::Points& parameters, mesh::Points* forces) const;
+  // node-point forces f = -Φ⁻ᵀ K û [N] (3 × num_nodes), of the model or of a cut one.
+  // Allocate.
+  double ElasticEnergyOfParameters(const mesh::Points& parameters,
+                                   const EfgCutValues* cut = nullptr) const;
+  void ForcesOfParameters(const mesh::Points& parameters, mesh::Points* forces,
+                          const EfgCutValues* cut = nullptr) const;
   // Φ û for parameters û (3 × num_nodes): the physical displacements at the nodes.
-  void NodeDisplacements(const mesh::Points& parameters, mesh::Points* displacements) const;
+  void NodeDisplacements(const mesh::Points& parameters, mesh::Points* displacements,
+                         const EfgCutValues* cut = nullptr) const;
+  // û = Φ⁻¹ u for node displacements u (3 × num_nodes), of the model or of a cut one. False
+  // when a cut's Φ is singular. Allocates.
+  bool ParametersOfDisplacements(const mesh::Points& displacements, mesh::Points* parameters,
+                                 const EfgCutValues* cut = nullptr) const;
 
  protected:
   void Advance(const StepInputs& inputs, TissueState* state) const override;
@@ -173,17 +227,27 @@ class EfgModel final : public TissueModel {
   friend class EfgHybridModel;  // reduces this model: reads its matrices and shape functions
   EfgModel();
   struct Factors;  // Φ's sparse LU (for û from positions), kept out of this header
+  // The values the kernels read: the model's, or a cut's (EfgCutValues).
+  struct Values {
+    const double* phi;  // Φ's entries on its pattern
+    const double* k;    // K's blocks, 9 × blocks
+    const double* m;    // M̂'s coefficients, blocks
+  };
+  Values ValuesOf(const EfgCutValues* cut) const;
 
   // y = K x (x, y 3 × num_nodes flat) by the symmetric lower block storage.
-  void MultiplyStiffness(const double* x, double* y) const;
+  void MultiplyStiffness(const Values& values, const double* x, double* y) const;
   // y = Φ x and y = Φᵀ x (3 × num_nodes flat each).
-  void MultiplyPhi(const double* x, double* y) const;
-  void MultiplyPhiTransposed(const double* x, double* y) const;
+  void MultiplyPhi(const Values& values, const double* x, double* y) const;
+  void MultiplyPhiTransposed(const Values& values, const double* x, double* y) const;
   // k_scale K + m_scale M̂ + s_scale Σ_I s_I Φ_Iᵀ Φ_I (s: num_nodes [N/m]) into `blocks`
   // (9 × blocks, the lower block pattern) and gathered into `values` (the scalar lower CSC
   // pattern).
-  void AssembleSystem(double k_scale, double m_scale, double s_scale, const double* s,
-                      double* blocks, double* values) const;
+  void AssembleSystem(const Values& matrices, double k_scale, double m_scale, double s_scale,
+                      const double* s, double* blocks, double* values) const;
+  // Adds sign × a Gauss point's contribution w Bᵀ D B (its MLS evaluation with gradients, its
+  // weight w = rule weight × volume [m³]) to K's blocks.
+  void AddGaussPoint(const MlsEvaluation& eval, double w, double sign, double* k_blocks) const;
   // The index of block (row, col), row >= col, in the lower block pattern.
   int64_t BlockIndex(int32_t row, int32_t col) const;
   // Step 2 of Advance: makes the state's factors current (the step's system with the supports
@@ -199,6 +263,9 @@ class EfgModel final : public TissueModel {
   bool CorrectForAttachments(double dt, TissueState* state) const;
 
   mesh::Points rest_;  // X [m], 3 × num_nodes
+  // The Gauss points [m] (3 × num_gauss, tet by tet) and their weights w |J| [m³] (num_gauss).
+  mesh::Points gauss_x_;
+  std::vector<double> gauss_w_;
   std::unique_ptr<MlsShapeFunctions> shape_;
   std::vector<double> mass_;  // m_I [kg], num_nodes
   // Φ by rows: node I's row is phi_node_/phi_value_[phi_start_[I] .. phi_start_[I+1]).

@@ -8,6 +8,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "server/models/cut_geometry.h"
+
 namespace somasim::models::meshless {
 namespace {
 
@@ -163,6 +165,7 @@ MlsShapeFunctions::MlsShapeFunctions(const mesh::Points& nodes, const MlsParamet
     sum += r;
   }
   basis_scale_ = sum / n;
+  max_radius_ = *std::max_element(radius_.begin(), radius_.end());
 
   // The evaluation grid: cells of about the mean radius; node J in every cell its support's
   // bounding box overlaps.
@@ -213,7 +216,18 @@ int64_t MlsShapeFunctions::CellOf(const Vector3d& x) const {
          int64_t{grid_size_[0]} * (c[1] + int64_t{grid_size_[1]} * c[2]);
 }
 
-void MlsShapeFunctions::Evaluate(const Vector3d& x, bool with_gradients, MlsEvaluation* out) const {
+void MlsShapeFunctions::CoveringNodes(const Vector3d& x, std::vector<int32_t>* out) const {
+  if (!x.allFinite()) return;
+  const auto cell = static_cast<size_t>(CellOf(x));
+  for (int32_t t = cell_start_[cell]; t < cell_start_[cell + 1]; ++t) {
+    const int32_t j = cell_nodes_[size_t(t)];
+    if ((x - nodes_.col(j)).norm() < radius_[size_t(j)]) out->push_back(j);
+  }
+}
+
+void MlsShapeFunctions::Evaluate(const Vector3d& x, bool with_gradients,
+                                 std::span<const Vector3d> cut_triangles,
+                                 MlsEvaluation* out) const {
   if (!x.allFinite()) Refuse("evaluation point " + PointName(x) + " is not finite");
   out->nodes.clear();
   out->values.clear();
@@ -224,6 +238,12 @@ void MlsShapeFunctions::Evaluate(const Vector3d& x, bool with_gradients, MlsEval
     const int32_t j = cell_nodes_[size_t(t)];
     const double r = (x - nodes_.col(j)).norm() / radius_[size_t(j)];
     if (r >= 1.0) continue;
+    bool hidden = false;
+    for (size_t k = 0; k + 2 < cut_triangles.size() && !hidden; k += 3) {
+      hidden = SegmentCrossesTriangle(nodes_.col(j), x, cut_triangles[k], cut_triangles[k + 1],
+                                      cut_triangles[k + 2]);
+    }
+    if (hidden) continue;
     out->nodes.push_back(j);
     w.push_back(CubicSplineWeight(r));
     dw_dr.push_back(CubicSplineWeightDerivative(r));

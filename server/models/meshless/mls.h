@@ -71,7 +71,20 @@ class MlsShapeFunctions {
   // φ_J(x) and, when `with_gradients`, ∇φ_J(x) at the point x [m]. Allocates (into `out`, reused
   // across calls): for precomputation, not for a real-time step. Throws std::invalid_argument
   // naming x when fewer than 4 supports cover it or A(x) is ill-conditioned.
-  void Evaluate(const Eigen::Vector3d& x, bool with_gradients, MlsEvaluation* out) const;
+  void Evaluate(const Eigen::Vector3d& x, bool with_gradients, MlsEvaluation* out) const {
+    Evaluate(x, with_gradients, {}, out);
+  }
+  // The same with the visibility criterion (Belytschko, Lu & Gu 1994; seed 001's cutting in
+  // the meshless region): a node J whose segment X_J–x crosses one of the cut triangles
+  // (cut_triangles: [m], 3 vertices per triangle; SegmentCrossesTriangle) does not cover x.
+  // The caller passes the triangles near x (the cost is O(supports × triangles)).
+  void Evaluate(const Eigen::Vector3d& x, bool with_gradients,
+                std::span<const Eigen::Vector3d> cut_triangles, MlsEvaluation* out) const;
+  // The nodes whose support contains x, without the visibility criterion or the moment matrix
+  // (cheap: a grid cell's list), appended to `out` in the grid's order.
+  void CoveringNodes(const Eigen::Vector3d& x, std::vector<int32_t>* out) const;
+  // The largest support radius, max ρ_J [m].
+  double max_support_radius() const { return max_radius_; }
 
  private:
   // The flattened index of the grid cell containing x (clamped to the grid).
@@ -80,6 +93,7 @@ class MlsShapeFunctions {
   mesh::Points nodes_;          // [m], 3 × num_nodes
   std::vector<double> radius_;  // ρ_J [m], num_nodes
   double basis_scale_ = 1.0;    // h [m]: the mean support radius
+  double max_radius_ = 0.0;     // max ρ_J [m]
   double min_rcond_ = 1e-10;
   Eigen::Vector3d grid_origin_;      // [m]
   double cell_ = 1.0;                // cell edge [m]

@@ -136,9 +136,10 @@ TEST(Session, GraspingAndPullingLiftsTheTissueAndReleaseLetsGo) {
 
 // Seed 001's liver on the EFG model (tests/data/scenes/liver288_efg.scene.txtpb) runs like a FEM
 // organ: the probe pressing its top and sliding on it meets it, moves it, and gets a pushing
-// force model from the model's LocalStiffness (no FemCompliance: that is the FEM's); the organ
-// cannot be cut. The contact's springs change every tick, which the model takes by a low-rank
-// update: it factorises only on the first step (the step system and the static one).
+// force model from the model's LocalStiffness (no FemCompliance: that is the FEM's; no cutter:
+// the EFG cuts through its own hook, SessionCut below). The contact's springs change every tick,
+// which the model takes by a low-rank update: it factorises only on the first step (the step system
+// and the static one).
 TEST(Session, AnEfgOrganIsPressedByTheProbeAndGivesAForceModel) {
   scene::SceneLines lines;
   const scene::Scene s = scene::LoadSceneFile(
@@ -499,6 +500,65 @@ TEST(SessionCut, AScalpelStrokeCutsTheFemOrganAndBumpsItsTopology) {
   EXPECT_EQ(session.organ(0).elements_cut, 0);
   EXPECT_EQ(session.organ(0).cutter->num_alive(), session.organ(0).cutter->num_tets());
   EXPECT_EQ(session.organ(0).topology_version, version + 1);
+}
+
+// Seed 001's hybrid liver cut by the scalpel (issue 13: cutting in the meshless region by the
+// visibility criterion, through the model interface): the stroke hides (node, point) pairs
+// under the blade, counted as the organ's elements cut and reported by one event when the
+// incision ends; no step is rejected, the field stays finite, and the topology (the meshless
+// model keeps its nodes and surface) does not change.
+TEST(SessionCut, AScalpelStrokeCutsTheEfgHybridLiver) {
+  scene::SceneLines lines;
+  const scene::Scene scene = scene::LoadSceneFile(
+      std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/liver288_efg_hybrid.scene.txtpb", &lines);
+  Session session(scene, lines, ".");
+  const int32_t s = session.ToolIndex("scalpel");
+  const SessionOrgan& o = session.organ(0);
+  ASSERT_NE(o.built.efg_hybrid, nullptr);
+  ASSERT_TRUE(o.built.model->SupportsCutting());
+  const Incision cut = AcrossTheTop(session);
+  const uint32_t version = o.topology_version;
+  uint64_t seq = 0;
+  const int steps = 40;
+  const auto start = std::chrono::steady_clock::now();
+  for (int i = 0; i <= steps; ++i) {
+    const double u = static_cast<double>(i) / steps;
+    session.SetToolCommand(s, Blade((1.0 - u) * cut.start + u * cut.end, true, ++seq));
+    session.Step();
+    for (const SessionEventRecord& e : session.TakeEvents()) {
+      EXPECT_NE(e.kind, SessionEventRecord::Kind::kCut) << "the event comes when it ends";
+    }
+  }
+  const double took =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const models::meshless::EfgCutValues* values = o.built.efg_hybrid->CutOf(*o.state);
+  ASSERT_NE(values, nullptr);
+  EXPECT_GT(o.elements_cut, 0);
+  EXPECT_EQ(values->hidden_pairs, o.elements_cut);
+  EXPECT_EQ(session.rejected_steps(), 0u);
+  EXPECT_TRUE(o.state->positions.allFinite());
+  std::printf(
+      "EFG hybrid liver288: a 2 cm stroke 4 mm deep in %d ticks hid %lld pairs (%lld Gauss "
+      "points dropped, %lld node rows detached) in %.2f s, %lld partitions\n",
+      steps + 1, static_cast<long long>(values->hidden_pairs),
+      static_cast<long long>(values->dropped_points), static_cast<long long>(values->detached_rows),
+      took, static_cast<long long>(o.built.efg_hybrid->Partitions(*o.state)));
+  // Out of the tissue, the button released: one event with what the incision hid.
+  session.SetToolCommand(s, Blade(cut.end + Eigen::Vector3d(0.0, 0.0, 0.03), false, ++seq));
+  int32_t events = 0, removed = 0;
+  for (int i = 0; i < 20; ++i) {
+    session.Step();
+    for (const SessionEventRecord& e : session.TakeEvents()) {
+      if (e.kind != SessionEventRecord::Kind::kCut) continue;
+      ++events;
+      removed += e.detail;
+    }
+  }
+  EXPECT_EQ(events, 1);
+  EXPECT_EQ(removed, o.elements_cut);
+  EXPECT_EQ(o.topology_version, version);
+  EXPECT_EQ(session.rejected_steps(), 0u);
+  EXPECT_TRUE(o.state->positions.allFinite());
 }
 
 TEST(SessionCut, WithoutTheCutButtonTheScalpelOnlyPresses) {
