@@ -1,5 +1,6 @@
 #include "server/reduce/builder.h"
 
+#include <Eigen/Cholesky>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -229,6 +230,17 @@ NonlinearBuildReport BuildNonlinearModel(
   for (const mesh::Points& u : kl.training) add(u);
   std::vector<mesh::Points> states = kl.training;  // the cubature's candidates
   NonlinearBuildReport out;
+  // The region nodes' linear responses to unit forces along x, y, z (3N × 3 each).
+  std::vector<int32_t> correction_nodes;
+  std::vector<Eigen::MatrixXd> responses;
+  // The region samples' loads and the full model's displacement of the loaded node, for the
+  // correction's scale: per sample its node, magnitude index, force [N] and u_r [m].
+  struct Dent {
+    int32_t node = 0;
+    size_t magnitude = 0;
+    Eigen::Vector3d force, displacement;
+  };
+  std::vector<Dent> dents;
   // The magnitudes of the region samples.
   std::vector<double> magnitudes = plan.nonlinear_forces;
   if (magnitudes.empty()) {
@@ -260,12 +272,25 @@ NonlinearBuildReport BuildNonlinearModel(
     loads.external_forces = &forces;
     loads.fixed_nodes = plan.fixed;
     loads.reuse_factorisation = true;
+    // The responses per newton along x, y, z (from those along the orthonormal d1, d2, d3:
+    // Y e_a = Σ_j (d_j · e_a) Y d_j), kept for the static correction.
+    Eigen::MatrixXd unit = Eigen::MatrixXd::Zero(3 * static_cast<Eigen::Index>(nodes), 3);
+    bool linear_ok = true;
     for (const Eigen::Vector3d& d : {inward, t1, t2}) {
       forces.col(r) = 1e-3 * d;
       auto state = full.MakeState();
       if (full.SolveStatic(loads, state.get(), &workspace).converged) {
-        add(state->positions - full.rest_positions());
+        const mesh::Points u = state->positions - full.rest_positions();
+        add(u);
+        const Eigen::Map<const Eigen::VectorXd> y(u.data(), u.size());
+        for (int a = 0; a < 3; ++a) unit.col(a) += (d(a) / 1e-3) * y;
+      } else {
+        linear_ok = false;
       }
+    }
+    if (linear_ok) {
+      correction_nodes.push_back(r);
+      responses.push_back(std::move(unit));
     }
     std::vector<Eigen::Vector3d> directions{inward};
     for (int k = 0; k < plan.tilts; ++k) {
@@ -279,7 +304,8 @@ NonlinearBuildReport BuildNonlinearModel(
     StaticWorkspace sample_workspace;
     for (const Eigen::Vector3d& d : directions) {
       auto state = full.MakeState();
-      for (const double f : magnitudes) {
+      for (size_t m = 0; m < magnitudes.size(); ++m) {
+        const double f = magnitudes[m];
         forces.col(r) = f * d;
         if (!full.SolveStatic(samples, state.get(), &sample_workspace).converged) {
           ++out.unconverged;
@@ -289,6 +315,7 @@ NonlinearBuildReport BuildNonlinearModel(
         add(u);
         states.push_back(u);
         ++out.region_solves;
+        dents.push_back({r, m, f * d, u.col(r)});
       }
     }
     report("region samples", done, plan.region_nodes.size());
@@ -332,6 +359,85 @@ NonlinearBuildReport BuildNonlinearModel(
   d.elements = out.cubature.elements;
   d.material = full.material();
   d.prony = full.prony();
+  // The static correction (nonlinear_model.h): R_p = K0⁻¹ E_p − B K̂0⁻¹ Bᵀ E_p with K̂0 the
+  // model's own reduced tangent at rest (its cubature's).
+  if (plan.static_correction && !correction_nodes.empty()) {
+    report("correction", 0, 1);
+    const auto model = models::reduced::NonlinearReducedModel::Create(d);
+    const auto state = model->MakeState();
+    Eigen::VectorXd force;
+    Eigen::MatrixXd tangent;
+    model->ReducedForces(*state, Eigen::VectorXd::Zero(d.modes.cols()), 0.0, &force, &tangent);
+    const Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (tangent + tangent.transpose()));
+    Require(llt.info() == Eigen::Success, "the reduced tangent at rest is not positive definite");
+    const auto c = static_cast<Eigen::Index>(correction_nodes.size());
+    d.correction_nodes = correction_nodes;
+    d.corrections.resize(d.modes.rows(), 3 * c);
+    for (Eigen::Index k = 0; k < c; ++k) {
+      const Eigen::MatrixXd bt =
+          d.modes.middleRows(3 * static_cast<Eigen::Index>(correction_nodes[size_t(k)]), 3)
+              .transpose();  // Bᵀ E_p: n × 3
+      d.corrections.middleCols<3>(3 * k) = responses[size_t(k)] - d.modes * llt.solve(bt);
+    }
+    out.correction_nodes = c;
+    // Its scale κ per node and magnitude: the reduced model's own elastic equilibrium under each
+    // region sample's force (Newton from the last magnitude's, as the full solves ran) against
+    // the full model's dent at the loaded node, d = u_full − u_reduced ≈ κ R_pp f, fitted over
+    // the node's directions by least squares (κ = Σ d·q / Σ q·q, q = R_pp f; clamped to
+    // [0, 1.5]).
+    const auto magnitudes_count = static_cast<Eigen::Index>(magnitudes.size());
+    Eigen::MatrixXd numerator = Eigen::MatrixXd::Zero(magnitudes_count, c);
+    Eigen::MatrixXd denominator = Eigen::MatrixXd::Zero(magnitudes_count, c);
+    std::vector<Eigen::Index> index_of(static_cast<size_t>(nodes), -1);
+    for (Eigen::Index k = 0; k < c; ++k) index_of[size_t(correction_nodes[size_t(k)])] = k;
+    const Eigen::Index n = d.modes.cols();
+    Eigen::VectorXd xi = Eigen::VectorXd::Zero(n);
+    for (size_t s_index = 0; s_index < dents.size(); ++s_index) {
+      const Dent& dent = dents[s_index];
+      const Eigen::Index k = index_of[size_t(dent.node)];
+      if (k < 0) continue;
+      if (dent.magnitude == 0) xi.setZero();  // a new direction: from rest
+      const Eigen::MatrixXd rows = d.modes.middleRows(3 * dent.node, 3);  // B_r: 3 × n
+      const Eigen::VectorXd load = rows.transpose() * dent.force;
+      bool solved = false;
+      for (int iteration = 0; iteration < 40; ++iteration) {
+        model->ReducedForces(*state, xi, 0.0, &force, &tangent);
+        if (!force.allFinite()) break;
+        const Eigen::VectorXd residual = force + load;
+        if (residual.norm() <= 1e-9 * (load.norm() + force.norm())) {
+          solved = true;
+          break;
+        }
+        const Eigen::VectorXd step = tangent.ldlt().solve(residual);
+        double alpha = 1.0;  // halve a step that inverts an element
+        Eigen::VectorXd trial = xi + step;
+        for (int h = 0; h < 20; ++h) {
+          model->ReducedForces(*state, trial, 0.0, &force, nullptr);
+          if (force.allFinite()) break;
+          alpha *= 0.5;
+          trial = xi + alpha * step;
+        }
+        xi = trial;
+      }
+      if (!solved) continue;
+      const Eigen::Vector3d reduced = rows * xi;
+      const Eigen::Vector3d linear =
+          d.corrections.block<3, 3>(3 * Eigen::Index(dent.node), 3 * k) * dent.force;
+      numerator(Eigen::Index(dent.magnitude), k) += (dent.displacement - reduced).dot(linear);
+      denominator(Eigen::Index(dent.magnitude), k) += linear.squaredNorm();
+    }
+    d.correction_magnitudes = magnitudes;
+    d.correction_scales = Eigen::MatrixXd::Ones(magnitudes_count, c);
+    for (Eigen::Index m = 0; m < magnitudes_count; ++m) {
+      for (Eigen::Index k = 0; k < c; ++k) {
+        if (denominator(m, k) > 0.0) {
+          d.correction_scales(m, k) = std::clamp(numerator(m, k) / denominator(m, k), 0.0, 1.5);
+        }
+      }
+    }
+    out.correction_scale_mean = d.correction_scales.rowwise().mean();
+    report("correction", 1, 1);
+  }
   out.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
   return out;
 }

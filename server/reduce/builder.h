@@ -58,6 +58,9 @@ struct SamplingPlan {
   // At most this many training states for the cubature (evenly chosen: its least squares has
   // n × states rows).
   size_t max_cubature_states = 200;
+  // The nonlinear model's static correction at the region nodes (nonlinear_model.h): their
+  // linear responses beyond the modes, for point forces there.
+  bool static_correction = true;
 };
 
 struct BuildProgress {
@@ -89,7 +92,9 @@ struct NonlinearBuildReport {
   size_t region_solves = 0;  // static samples at the region nodes (converged)
   int unconverged = 0;       // region samples that did not converge (left out)
   models::reduced::Cubature cubature;
-  double seconds = 0.0;  // wall time of this part of the build
+  Eigen::Index correction_nodes = 0;      // nodes with a static correction
+  Eigen::VectorXd correction_scale_mean;  // its scale κ per magnitude, the nodes' mean
+  double seconds = 0.0;                   // wall time of this part of the build
 };
 
 // Throws std::invalid_argument naming what is wrong with the plan (a point out of range, held or

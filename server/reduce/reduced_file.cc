@@ -160,6 +160,30 @@ std::unique_ptr<models::reduced::NonlinearReducedModel> DecodeNonlinear(
     fail("hyperelastic: unknown law '" + h.law() + "'");
   }
   for (const reduced::PronyInfo& p : m.prony()) data.prony.push_back({p.gamma(), p.tau_s()});
+  if (m.arrays_size() == 10) {  // the static correction
+    const uint64_t c = m.arrays(6).rows();
+    if (m.arrays(6).cols() != 1) fail("'correction_nodes' is not c × 1");
+    if (m.arrays(7).rows() != 3 * m.num_nodes() || m.arrays(7).cols() != 3 * c) {
+      fail("'corrections' is not 3 num_nodes × 3c (c = " + std::to_string(c) + ")");
+    }
+    for (const double v : arrays[6]) {
+      if (!(v >= 0.0 && v < static_cast<double>(en)) || v != std::floor(v)) {
+        fail("'correction_nodes' holds " + std::to_string(v) + ", not a node index");
+      }
+      data.correction_nodes.push_back(static_cast<int32_t>(v));
+    }
+    data.corrections = Eigen::Map<const Eigen::MatrixXd>(arrays[7].data(), 3 * en,
+                                                         static_cast<Eigen::Index>(3 * c));
+    const uint64_t magnitudes = m.arrays(8).rows();
+    if (m.arrays(8).cols() != 1) fail("'correction_magnitudes' is not M × 1");
+    if (m.arrays(9).rows() != magnitudes || m.arrays(9).cols() != (magnitudes > 0 ? c : 0)) {
+      fail("'correction_scales' is not M × c (M = " + std::to_string(magnitudes) + ")");
+    }
+    data.correction_magnitudes = arrays[8];
+    data.correction_scales =
+        Eigen::Map<const Eigen::MatrixXd>(arrays[9].data(), static_cast<Eigen::Index>(magnitudes),
+                                          static_cast<Eigen::Index>(magnitudes > 0 ? c : 0));
+  }
   data.penalty_stiffness = m.penalty_stiffness();
   data.max_local_stiffness = m.max_local_stiffness();
   try {
@@ -234,14 +258,26 @@ std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata,
   const std::vector<double> tets(data.tets.data(), data.tets.data() + data.tets.size());
   std::vector<double> elements(data.elements.begin(), data.elements.end());
   if (elements.empty()) elements.assign(data.weights.size(), -1.0);
-  const std::vector<Array> arrays = {
-      {"rest", data.rest.data(), 3, static_cast<size_t>(data.rest.cols())},
-      {"masses", data.masses.data(), data.masses.size(), 1},
-      {"modes", data.modes.data(), static_cast<size_t>(data.modes.rows()),
-       static_cast<size_t>(data.modes.cols())},
-      {"tets", tets.data(), 4, static_cast<size_t>(data.tets.cols())},
-      {"weights", data.weights.data(), data.weights.size(), 1},
-      {"elements", elements.data(), elements.size(), 1}};
+  std::vector<Array> arrays = {{"rest", data.rest.data(), 3, static_cast<size_t>(data.rest.cols())},
+                               {"masses", data.masses.data(), data.masses.size(), 1},
+                               {"modes", data.modes.data(), static_cast<size_t>(data.modes.rows()),
+                                static_cast<size_t>(data.modes.cols())},
+                               {"tets", tets.data(), 4, static_cast<size_t>(data.tets.cols())},
+                               {"weights", data.weights.data(), data.weights.size(), 1},
+                               {"elements", elements.data(), elements.size(), 1}};
+  const std::vector<double> correction_nodes(data.correction_nodes.begin(),
+                                             data.correction_nodes.end());
+  if (!correction_nodes.empty()) {
+    arrays.push_back({"correction_nodes", correction_nodes.data(), correction_nodes.size(), 1});
+    arrays.push_back({"corrections", data.corrections.data(),
+                      static_cast<size_t>(data.corrections.rows()),
+                      static_cast<size_t>(data.corrections.cols())});
+    arrays.push_back({"correction_magnitudes", data.correction_magnitudes.data(),
+                      data.correction_magnitudes.size(), 1});
+    arrays.push_back({"correction_scales", data.correction_scales.data(),
+                      static_cast<size_t>(data.correction_scales.rows()),
+                      static_cast<size_t>(data.correction_scales.cols())});
+  }
   return EncodeArrays(std::move(metadata), arrays);
 }
 
@@ -292,10 +328,15 @@ LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::strin
   // The arrays, each checked before it is used.
   size_t at = kPreamble + meta_size;
   std::vector<std::vector<double>> arrays;
-  const std::vector<std::string> names =
+  std::vector<std::string> names =
       nonlinear ? std::vector<std::string>{"rest", "masses", "modes", "tets", "weights", "elements"}
                 : std::vector<std::string>{
                       "rest", "masses", "modes", "stiffness_modes", "reduced_stiffness", "creep"};
+  // A nonlinear model may carry its static correction: four arrays more.
+  if (nonlinear && m.arrays_size() == 10) {
+    names.insert(names.end(),
+                 {"correction_nodes", "corrections", "correction_magnitudes", "correction_scales"});
+  }
   if (m.arrays_size() != static_cast<int>(names.size())) {
     fail("lists " + std::to_string(m.arrays_size()) + " arrays, not " +
          std::to_string(names.size()));

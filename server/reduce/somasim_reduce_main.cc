@@ -327,6 +327,11 @@ int RunMain(int argc, char** argv) {
       nonlinear_summary["cubature_states_inverted"] = nl.cubature.inverted;
       nonlinear_summary["region_nodes"] = plan.region_nodes;
       nonlinear_summary["region_solves"] = nl.region_solves;
+      nonlinear_summary["correction_nodes"] = nl.correction_nodes;
+      nonlinear_summary["correction_magnitudes"] = nl.data.correction_magnitudes;
+      nonlinear_summary["correction_scale_mean"] =
+          std::vector<double>(nl.correction_scale_mean.data(),
+                              nl.correction_scale_mean.data() + nl.correction_scale_mean.size());
       nonlinear_summary["region_unconverged"] = nl.unconverged;
       nonlinear_summary["build_seconds"] = nl.seconds;
     }

@@ -31,17 +31,58 @@ class NonlinearState final : public ModalState {
   Eigen::VectorXd external, internal, residual, delta, spring_rhs, trial;  // n
   mutable Eigen::MatrixXd local;  // n × 3: LocalStiffness's K̂⁻¹ B_iᵀ
   double factor_springs = 0.0;    // the springs the factor holds (a signature; 0: none)
+  // The static correction (c correction nodes): each node's effective force e of the last
+  // step and its QLV variables [N] (3 × c, 3 × c·terms, term-minor), their good copies; the
+  // field it adds, δ = Σ_p R_p e_p, and the last step's (3N [m]), with their good copies;
+  // whether δ and δ_prev are non-zero (while neither is, nothing touches the 3N vectors).
+  Eigen::MatrixXd corr_elastic, corr_history, good_corr_elastic, good_corr_history;
+  Eigen::VectorXd corr_field, corr_field_prev, good_corr_field, good_corr_field_prev;
+  bool corr_nonzero = false, corr_prev_nonzero = false;
+  bool good_corr_nonzero = false, good_corr_prev_nonzero = false;
+  bool corr_active() const { return corr_nonzero || corr_prev_nonzero; }
+
+  // Adds δ to the positions and (δ − δ_prev) / dt to the velocities just rebuilt from ξ.
+  void ApplyCorrection() {
+    if (!corr_active()) return;
+    Eigen::Map<Eigen::VectorXd>(positions.data(), positions.size()) += corr_field;
+    if (dt > 0.0) {
+      Eigen::Map<Eigen::VectorXd>(velocities.data(), velocities.size()) +=
+          (corr_field - corr_field_prev) / dt;
+    }
+    checked_non_finite_ = checked_non_finite_ || !corr_field.allFinite();
+  }
 
  protected:
   void SaveGood() override {
     SaveModal();
     good_history = history;
     good_elastic_last = elastic_last;
+    if (corr_elastic.size() > 0) {  // same sizes: no allocation
+      good_corr_elastic = corr_elastic;
+      good_corr_history = corr_history;
+    }
+    if (corr_active() || good_corr_nonzero || good_corr_prev_nonzero) {
+      good_corr_field = corr_field;
+      good_corr_field_prev = corr_field_prev;
+    }
+    good_corr_nonzero = corr_nonzero;
+    good_corr_prev_nonzero = corr_prev_nonzero;
   }
   void RestoreGood() override {
     history = good_history;
     elastic_last = good_elastic_last;
+    if (corr_elastic.size() > 0) {
+      corr_elastic = good_corr_elastic;
+      corr_history = good_corr_history;
+    }
+    if (corr_active() || good_corr_nonzero || good_corr_prev_nonzero) {
+      corr_field = good_corr_field;
+      corr_field_prev = good_corr_field_prev;
+    }
+    corr_nonzero = good_corr_nonzero;
+    corr_prev_nonzero = good_corr_prev_nonzero;
     RestoreModal();
+    ApplyCorrection();
   }
 };
 
@@ -142,6 +183,36 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
   Require(std::isfinite(data.newton_tolerance) && data.newton_tolerance > 0.0,
           "newton_tolerance must be > 0");
   Require(data.max_newton_iterations >= 1, "max_newton_iterations must be >= 1");
+  const auto c = static_cast<Eigen::Index>(data.correction_nodes.size());
+  Require(data.corrections.size() == 0
+              ? c == 0
+              : data.corrections.rows() == 3 * nodes && data.corrections.cols() == 3 * c,
+          "corrections must be 3N × 3c for c = " + std::to_string(c) + " correction nodes, got " +
+              std::to_string(data.corrections.rows()) + " × " +
+              std::to_string(data.corrections.cols()));
+  Require(data.corrections.allFinite(), "a correction is not finite");
+  const auto magnitudes = static_cast<Eigen::Index>(data.correction_magnitudes.size());
+  Require(magnitudes == 0
+              ? data.correction_scales.size() == 0
+              : data.correction_scales.rows() == magnitudes && data.correction_scales.cols() == c,
+          "correction_scales must be M × c for M = " + std::to_string(magnitudes) +
+              " magnitudes and c = " + std::to_string(c) + " nodes");
+  for (size_t k = 0; k < data.correction_magnitudes.size(); ++k) {
+    const double f = data.correction_magnitudes[k];
+    Require(std::isfinite(f) && f > 0.0 && (k == 0 || f > data.correction_magnitudes[k - 1]),
+            "correction_magnitudes must be finite, > 0 and increasing");
+  }
+  Require(data.correction_scales.allFinite() && (data.correction_scales.array() >= 0.0).all(),
+          "a correction scale is not finite and >= 0");
+  {
+    std::vector<uint8_t> seen(static_cast<size_t>(nodes), 0);
+    for (const int32_t p : data.correction_nodes) {
+      Require(p >= 0 && p < nodes, "correction node " + std::to_string(p) + " out of range");
+      Require(seen[static_cast<size_t>(p)] == 0,
+              "correction node " + std::to_string(p) + " listed twice");
+      seen[static_cast<size_t>(p)] = 1;
+    }
+  }
   // The sampled elements' geometry (throws for an inverted or flat one).
   mesh::TetMesh sampled;
   sampled.vertices = data.rest;
@@ -224,6 +295,15 @@ std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
   const Eigen::Index n = data_.modes.cols(), m = data_.tets.cols();
   const auto terms = static_cast<Eigen::Index>(data_.prony.size());
   state->InitialiseModal(field_, data_.rest.data(), speed_limit());
+  const auto c = static_cast<Eigen::Index>(data_.correction_nodes.size());
+  state->corr_elastic = Eigen::MatrixXd::Zero(3, c);
+  state->corr_history = Eigen::MatrixXd::Zero(3, c * terms);
+  state->good_corr_elastic = state->corr_elastic;
+  state->good_corr_history = state->corr_history;
+  state->corr_field = Eigen::VectorXd::Zero(c > 0 ? data_.modes.rows() : 0);
+  state->corr_field_prev = state->corr_field;
+  state->good_corr_field = state->corr_field;
+  state->good_corr_field_prev = state->corr_field;
   state->history = Eigen::VectorXd::Zero(9 * m * terms);
   state->good_history = state->history;
   state->elastic_last = Eigen::VectorXd::Zero(9 * m);
@@ -406,7 +486,78 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
       last = now;
     }
   }
+  if (!data_.correction_nodes.empty()) Correct(inputs, s);
   s->Rebuild();
+  s->ApplyCorrection();
+}
+
+double NonlinearReducedModel::CorrectionScale(Eigen::Index node, double magnitude) const {
+  const std::vector<double>& f = data_.correction_magnitudes;
+  if (f.empty()) return 1.0;
+  double f0 = 0.0, k0 = 1.0;
+  for (size_t m = 0; m < f.size(); ++m) {
+    const double k1 = data_.correction_scales(static_cast<Eigen::Index>(m), node);
+    if (magnitude <= f[m]) return k0 + (k1 - k0) * (magnitude - f0) / (f[m] - f0);
+    f0 = f[m];
+    k0 = k1;
+  }
+  return k0;
+}
+
+void NonlinearReducedModel::Correct(const StepInputs& inputs, TissueState* base) const {
+  auto* s = static_cast<NonlinearState*>(base);
+  // Each correction node's effective force e: the external force through the QLV recursion of
+  // the elements' stresses (BeginViscous and the history update above, on a 3-vector), then
+  // δ = Σ_p R_p e_p over the nodes whose e is not negligible.
+  const size_t terms = data_.prony.size();
+  double decay[fem::kMaxPronyTerms] = {}, weight[fem::kMaxPronyTerms] = {};
+  double g = 1.0;
+  const bool viscous = terms > 0 && inputs.dt > 0.0;
+  if (viscous) {
+    for (size_t k = 0; k < terms; ++k) {
+      double beta = 0.0;
+      fem::PronyFactors(data_.prony[k], inputs.dt, &decay[k], &beta);
+      weight[k] = data_.prony[k].gamma * beta;
+      g += weight[k] - data_.prony[k].gamma;
+    }
+  }
+  // δ_prev ← δ, δ ← 0 (the 3N vectors touched only when one is non-zero; same sizes).
+  if (s->corr_nonzero) {
+    s->corr_field_prev = s->corr_field;
+    s->corr_field.setZero();
+  } else if (s->corr_prev_nonzero) {
+    s->corr_field_prev.setZero();
+  }
+  s->corr_prev_nonzero = s->corr_nonzero;
+  s->corr_nonzero = false;
+  for (Eigen::Index k = 0; k < static_cast<Eigen::Index>(data_.correction_nodes.size()); ++k) {
+    const int32_t p = data_.correction_nodes[static_cast<size_t>(k)];
+    Eigen::Vector3d f = Eigen::Vector3d::Zero();
+    if (inputs.external_forces != nullptr) f = inputs.external_forces->col(p);
+    auto last = s->corr_elastic.col(k);
+    Eigen::Vector3d e = f;
+    if (viscous) {
+      Eigen::Vector3d offset = Eigen::Vector3d::Zero();
+      for (size_t t = 0; t < terms; ++t) {
+        offset += decay[t] * s->corr_history.col(k * static_cast<Eigen::Index>(terms) +
+                                                 static_cast<Eigen::Index>(t)) -
+                  weight[t] * last;
+      }
+      e = (f - offset) / g;
+      for (size_t t = 0; t < terms; ++t) {
+        auto h = s->corr_history.col(k * static_cast<Eigen::Index>(terms) +
+                                     static_cast<Eigen::Index>(t));
+        h = decay[t] * h + weight[t] * (e - last);
+      }
+    }
+    last = e;
+    const double magnitude = e.norm();
+    if (magnitude > 1e-9) {  // [N]: below it the dent is ~1e-11 m
+      const double kappa = CorrectionScale(k, magnitude);
+      s->corr_field.noalias() += data_.corrections.middleCols<3>(3 * k) * (kappa * e);
+      s->corr_nonzero = true;
+    }
+  }
 }
 
 void NonlinearReducedModel::ReducedForces(const TissueState& state, const Eigen::VectorXd& xi,

@@ -29,6 +29,22 @@
 // springs (O(n³/3)) without assembling it again. The Prony variables advance once the step has
 // converged. Allocation-free; the full field is
 // reconstructed once per step (modal_field.h). A reduced model cannot be cut.
+//
+// Static correction (residual flexibility; the "static correction" of mode truncation, e.g.
+// Craig & Kurdila 2006 §14.4, Géradin & Rixen 2015 §5.3): a Galerkin model on modes B is stiffer
+// than the full one — the local dent under a point force is not in span(B) — so the reduced
+// displacement under a tool's push falls short (measured on the liver: 5–29 % at the loaded
+// node). For point forces at the correction nodes (the builder's region nodes) the field gets
+// the linear response the modes miss,
+//   U = B ξ + Σ_p R_p e_p,   R_p = K0⁻¹ E_p − B K̂0⁻¹ Bᵀ E_p   (3N × 3, E_p the unit forces at p),
+// K0 the full tangent at rest and K̂0 the reduced one (the cubature's, at ξ = 0), so that in the
+// linear range the corrected model IS the full one for such loads. e_p [N] is the external force
+// at p passed through the same QLV recursion as the elements' stresses (in the linear range the
+// full model's stress history is that of K u, so its displacement is K⁻¹ e with e the force's
+// recursion): held forces creep, released ones recover, as the full model's. The correction
+// acts on external forces only; its amplitude follows the material's stiffening through a
+// calibrated scale κ_p(|e|) (below) (a grasp's or probe's spring is not corrected, nor is
+// LocalStiffness), and costs one 3N pass per loaded correction node per step.
 #pragma once
 
 #include <Eigen/Cholesky>
@@ -64,6 +80,17 @@ struct NonlinearModelData {
   // max_newton_iterations (>= 1), accepting the last iterate (counted as unconverged).
   double newton_tolerance = 1e-6;
   int max_newton_iterations = 30;
+  // The static correction (above; optional): its nodes (c, distinct, in [0, N)) and R
+  // (3N × 3c [m/N], node k's columns 3k..3k+2 the responses to unit x, y, z forces), finite.
+  std::vector<int32_t> correction_nodes;
+  Eigen::MatrixXd corrections;
+  // Its amplitude under large forces (optional): the stiffening material makes the linear R_p an
+  // over-estimate, so node p's correction is κ_p(|e|) R_p e with κ_p piecewise linear through
+  // (0, 1) and (correction_magnitudes[m] [N], correction_scales(m, p)), held beyond the last.
+  // The builder fits κ on its own training solves (the full model's static dents at the region
+  // nodes against the reduced model's). Magnitudes increasing, > 0; scales M × c, finite, >= 0.
+  std::vector<double> correction_magnitudes;
+  Eigen::MatrixXd correction_scales;
 };
 
 // D (9 × n) of one element: vec(F − I) = D ξ for u = B ξ, row i + 3j = Σ_a ∇N_a[j] B(3 c_a + i, :)
@@ -117,6 +144,11 @@ class NonlinearReducedModel final : public TissueModel {
   // Stresses P of every sampled element at the state's gradient buffer (vec(F − I), 9 × m)
   // into p (9 × m), scaled by w V; false if an element is inverted (det F <= 0) or not finite.
   bool Stresses(const double* h, double g, const double* offset, double* p) const;
+  // The static correction of an accepted step: the correction nodes' effective forces, their
+  // QLV variables and the field δ in the state (allocation-free).
+  void Correct(const StepInputs& inputs, TissueState* state) const;
+  // κ of correction node `node` (index into correction_nodes) at |e| = magnitude [N].
+  double CorrectionScale(Eigen::Index node, double magnitude) const;
   // T (9m × n) = blockdiag(w V ∂P/∂F) D at the gradients h.
   void TangentFactors(const double* h, double g, const double* offset, double* t) const;
 

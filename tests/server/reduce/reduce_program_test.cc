@@ -155,7 +155,7 @@ TEST(ReduceProgram, WritesAReducedModelThatLoadsOnTheOrgansMesh) {
 // The nonlinear model (--nonlinear-out) on a hyperelastic kidney: written from the same build,
 // loaded as the nonlinear kind, run by somasim-solve, and on held-out loads inside the regions
 // (nodes no plan sampled statically, tilted, held and released) far nearer the full model than
-// seed 000's model from the same build.
+// seed 000's model from the same build, the loaded node within 7 % (its static correction).
 TEST(ReduceProgram, TheNonlinearModelBeatsTheSeedMethodOnHeldOutLoads) {
   const std::string dir = testing::MakeTempDir("reduce-nl");
   const std::string scene = Scene("kidney_nonlinear_reduction.scene.txtpb");
@@ -168,6 +168,7 @@ TEST(ReduceProgram, TheNonlinearModelBeatsTheSeedMethodOnHeldOutLoads) {
   EXPECT_EQ(nl["modes"], 32);
   EXPECT_EQ(nl["region_unconverged"], 0);
   EXPECT_EQ(nl["region_solves"], 16 * 3 * 3);  // region nodes × (normal + 2 tilts) × forces
+  EXPECT_EQ(nl["correction_nodes"], 16);       // each region node's static correction
   EXPECT_TRUE(nl["cubature_converged"].get<bool>());
   const mesh_gen::BuiltinOrgan kidney = mesh_gen::GenerateBuiltinOrgan("kidney424");
   EXPECT_LT(nl["cubature_elements"].get<int>(), kidney.volume.tetrahedra.cols() / 3);
@@ -217,8 +218,10 @@ TEST(ReduceProgram, TheNonlinearModelBeatsTheSeedMethodOnHeldOutLoads) {
   for (const std::string row : {"case0", "case1"}) {
     const double field = percent(ours, row, 3), node = percent(ours, row, 4);
     EXPECT_GE(field, 0.0) << row;
-    EXPECT_LT(field, 15.0) << row;  // measured 4-12 % (docs/reduced.md)
-    EXPECT_LT(node, 15.0) << row;
+    EXPECT_LT(field, 15.0) << row;  // measured 7.6-8.8 % (docs/reduced.md)
+    // The static correction puts back the loaded node's dent: measured 3.1 and 4.8 % (8.1 and
+    // 9.3 % without it).
+    EXPECT_LT(node, 7.0) << row;
     EXPECT_LT(2.0 * field, percent(seed, row, 3)) << row;
   }
   // A session's organ on it (somasim-solve's dynamic analysis: the model's own steps).

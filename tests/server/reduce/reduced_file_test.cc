@@ -223,6 +223,60 @@ TEST(ReducedFile, TheNonlinearModelRoundTripsWithItsMaterialAndCubature) {
   EXPECT_NE(Refusal(bytes, &moved).find("made for another mesh"), std::string::npos);
 }
 
+TEST(ReducedFile, TheNonlinearModelsStaticCorrectionRoundTripsAndIsChecked) {
+  NonlinearFixture f;
+  const Eigen::Index dofs = f.data.modes.rows();
+  f.data.correction_nodes = {2, 5};
+  f.data.corrections = Eigen::MatrixXd::Random(dofs, 6) * 1e-3;
+  f.data.correction_magnitudes = {0.1, 0.5};
+  f.data.correction_scales = Eigen::MatrixXd::Constant(2, 2, 0.75);
+  const LoadedReducedModel loaded = DecodeReducedModel(f.Bytes(), "nl.somared", &f.mesh);
+  ASSERT_NE(loaded.nonlinear, nullptr);
+  EXPECT_EQ(loaded.metadata.arrays_size(), 10);
+  EXPECT_EQ(loaded.nonlinear->data().correction_nodes, f.data.correction_nodes);
+  EXPECT_EQ(loaded.nonlinear->data().corrections, f.data.corrections);
+  EXPECT_EQ(loaded.nonlinear->data().correction_magnitudes, f.data.correction_magnitudes);
+  EXPECT_EQ(loaded.nonlinear->data().correction_scales, f.data.correction_scales);
+  // Without one the file has its 6 arrays, as before the correction existed.
+  EXPECT_EQ(
+      DecodeReducedModel(NonlinearFixture().Bytes(), "nl.somared", &f.mesh).metadata.arrays_size(),
+      6);
+  NonlinearFixture g = f;
+  g.data.corrections = Eigen::MatrixXd::Zero(dofs, 3);  // 3 columns for 2 nodes
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("'corrections' is not 3 num_nodes × 3c"),
+            std::string::npos)
+      << Refusal(g.Bytes(), nullptr);
+  g = f;
+  g.data.correction_nodes = {2, 4000};
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("'correction_nodes' holds 4000"), std::string::npos)
+      << Refusal(g.Bytes(), nullptr);
+  g = f;
+  g.data.correction_scales = Eigen::MatrixXd::Constant(3, 2, 0.75);  // 3 rows for 2 magnitudes
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("'correction_scales' is not M × c"), std::string::npos)
+      << Refusal(g.Bytes(), nullptr);
+  g = f;
+  g.data.correction_magnitudes = {0.5, 0.1};
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("increasing"), std::string::npos)
+      << Refusal(g.Bytes(), nullptr);
+  g = f;
+  g.data.correction_scales(1, 1) = -0.5;
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("a correction scale is not finite and >= 0"),
+            std::string::npos)
+      << Refusal(g.Bytes(), nullptr);
+  g = f;
+  g.data.correction_nodes = {2, 2};
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("listed twice"), std::string::npos)
+      << Refusal(g.Bytes(), nullptr);
+  g = f;
+  g.data.corrections(7, 4) = std::numeric_limits<double>::infinity();
+  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("a correction is not finite"), std::string::npos)
+      << Refusal(g.Bytes(), nullptr);
+  // Truncated inside the corrections: refused.
+  const std::string bytes = f.Bytes();
+  EXPECT_NE(Refusal(bytes.substr(0, bytes.size() - 100), &f.mesh).find("truncated at byte"),
+            std::string::npos);
+}
+
 TEST(ReducedFile, RefusesABadNonlinearModelByName) {
   const auto refused = [](const NonlinearFixture& g) { return Refusal(g.Bytes(), nullptr); };
   NonlinearFixture g;
