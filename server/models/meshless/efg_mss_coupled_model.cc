@@ -12,6 +12,7 @@
 #include <utility>
 
 #include "server/models/fem/sparse_cholesky.h"
+#include "server/models/meshless/block_pattern.h"
 #include "server/models/particle_mesh.h"
 
 namespace somasim::models::meshless {
@@ -423,21 +424,8 @@ std::unique_ptr<EfgMssCoupledModel> EfgMssCoupledModel::FromTetMesh(
   model->penalty_ = efg.penalty_factor * max_diagonal;
 
   // 7. The scalar lower CSC pattern of the 3N × 3N systems and each entry's block source.
-  model->csc_col_start_.assign(3 * size_t(n) + 1, 0);
-  for (int32_t c = 0; c < n; ++c) {
-    const int64_t begin = model->block_start_[size_t(c)], end = model->block_start_[size_t(c) + 1];
-    for (int cc = 0; cc < 3; ++cc) {
-      for (int64_t slot = begin; slot < end; ++slot) {
-        const int32_t row = model->block_row_[size_t(slot)];
-        for (int r = row == c ? cc : 0; r < 3; ++r) {
-          model->csc_rows_.push_back(3 * row + r);
-          model->csc_source_.push_back(9 * slot + r + 3 * cc);
-        }
-      }
-      model->csc_col_start_[3 * size_t(c) + size_t(cc) + 1] =
-          static_cast<int32_t>(model->csc_rows_.size());
-    }
-  }
+  ScalarLowerPattern(model->block_start_, model->block_row_, &model->csc_col_start_,
+                     &model->csc_rows_, &model->csc_source_);
 
   // 8. G's LU factors (for the reports' q = G⁻¹ u).
   {
