@@ -1,12 +1,9 @@
 #include "tests/support/mesh_fixtures.h"
 
-#include <unistd.h>
-
 #include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstdlib>
-#include <filesystem>
 #include <fstream>
 #include <map>
 #include <sstream>
@@ -123,15 +120,6 @@ std::string SharedMesh(const std::string& name) {
 
 std::string TestData(const std::string& name) {
   return std::string(SOMASIM_TEST_DATA_DIR) + "/" + name;
-}
-
-std::string MakeTempDir(const std::string& prefix) {
-  std::string tmpl = (std::filesystem::temp_directory_path() / (prefix + "-XXXXXX")).string();
-  std::vector<char> buffer(tmpl.begin(), tmpl.end());
-  buffer.push_back('\0');
-  const char* dir = mkdtemp(buffer.data());
-  EXPECT_NE(dir, nullptr) << "mkdtemp failed for " << tmpl;
-  return dir != nullptr ? std::string(dir) : std::string();
 }
 
 std::string Slurp(const std::string& path) {

@@ -13,6 +13,7 @@
 
 #include "common/mesh_io/mesh_data.h"
 #include "common/mesh_io/mesh_error.h"
+#include "tests/support/temp_files.h"  // MakeTempDir, for the tests that include only this file
 
 namespace somasim::testing {
 
@@ -35,8 +36,6 @@ std::string DamageBytes(const std::string& bytes, int changes, std::mt19937* rng
 std::string SharedMesh(const std::string& name);
 // Absolute path of tests/data/<name>.
 std::string TestData(const std::string& name);
-// A fresh empty directory under the system temp dir, for files a test writes.
-std::string MakeTempDir(const std::string& prefix);
 // Whole file as bytes; fails the test (and returns "") when unreadable.
 std::string Slurp(const std::string& path);
 void WriteBytes(const std::string& path, const std::string& bytes);

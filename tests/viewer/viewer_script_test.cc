@@ -5,11 +5,11 @@
 #include "viewer/viewer_script.h"
 
 #include <gtest/gtest.h>
-#include <unistd.h>
 
-#include <filesystem>
 #include <fstream>
 #include <string>
+
+#include "tests/support/temp_files.h"
 
 namespace somasim::viewer {
 namespace {
@@ -119,12 +119,9 @@ TEST(ViewerScript, LoadNamesAFileItCannotRead) {
               std::string::npos)
         << e.what();
   }
-  const std::string file = (std::filesystem::temp_directory_path() /
-                            ("viewer_script_" + std::to_string(::getpid()) + ".txt"))
-                               .string();
+  const std::string file = somasim::testing::MakeTempDir("viewer_script") + "/script.txt";
   std::ofstream(file) << "somasim-viewer-script 1\nframe 1 quit\n";
   EXPECT_EQ(LoadViewerScript(file).size(), 1u);
-  std::filesystem::remove(file);
 }
 
 }  // namespace

@@ -16,14 +16,14 @@
 #include <vector>
 
 #include "tests/support/full_disk_sink.h"
+#include "tests/support/temp_files.h"
 
 namespace somasim::recording {
 namespace {
 
+// `name` in this process's folder (removed when the test passes), no file there yet.
 std::string TempPath(const std::string& name) {
-  const std::string dir =
-      std::filesystem::temp_directory_path() / ("somasim-recording-" + std::to_string(::getpid()));
-  std::filesystem::create_directories(dir);
+  const std::string dir = somasim::testing::ProcessTempDir("somasim-recording");
   std::string path = dir + "/" + name;
   std::filesystem::remove(path);
   return path;

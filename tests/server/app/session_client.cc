@@ -1,7 +1,5 @@
 #include "tests/server/app/session_client.h"
 
-#include <unistd.h>
-
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -10,6 +8,7 @@
 #include <thread>
 
 #include "common/wire/mesh_frame_view.h"
+#include "tests/support/temp_files.h"
 
 namespace somasim::testing {
 namespace {
@@ -41,8 +40,8 @@ std::string BinPath(const std::string& program) {
 }
 
 std::string TempDir(const std::string& name) {
-  const std::filesystem::path dir =
-      std::filesystem::temp_directory_path() / ("somasim-test-" + std::to_string(getpid())) / name;
+  // Under this process's somasim-test-<pid>-XXXXXX, which the temp files' registry removes.
+  const std::filesystem::path dir = std::filesystem::path(ProcessTempDir("somasim-test")) / name;
   std::filesystem::create_directories(dir);
   return dir.string();
 }

@@ -25,7 +25,8 @@ namespace somasim::testing {
 std::string LoopbackConfigFile();
 // build/bin/<program> (SOMASIM_BIN_DIR, else beside the test).
 std::string BinPath(const std::string& program);
-// A fresh folder under the temporary directory.
+// The folder `name` in this process's temporary folder (made on first use; removed at the end
+// of the process when its tests passed, see tests/support/temp_files.h).
 std::string TempDir(const std::string& name);
 
 // Starts build/bin/<program> with `args`; its output goes to `log`.

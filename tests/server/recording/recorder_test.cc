@@ -18,14 +18,14 @@
 #include "server/recording/replay.h"
 #include "tests/support/allocation_counter.h"
 #include "tests/support/full_disk_sink.h"
+#include "tests/support/temp_files.h"
 
 namespace somasim::server {
 namespace {
 
+// `name` in this process's folder (removed when the test passes), no file there yet.
 std::string TempPath(const std::string& name) {
-  const std::string dir = std::filesystem::temp_directory_path() /
-                          ("somasim-session-recording-" + std::to_string(::getpid()));
-  std::filesystem::create_directories(dir);
+  const std::string dir = somasim::testing::ProcessTempDir("somasim-session-recording");
   std::string path = dir + "/" + name;
   std::filesystem::remove(path);
   return path;

@@ -16,6 +16,7 @@
 #include "server/models/fem/hyperelastic.h"
 #include "server/models/reduced/pod.h"
 #include "server/models/reduced/reduce_fem.h"
+#include "tests/support/temp_files.h"
 
 namespace somasim::reduce {
 namespace {
@@ -71,10 +72,7 @@ std::string Refusal(const std::string& bytes, const mesh::TetMesh* mesh) {
 
 TEST(ReducedFile, RoundTripKeepsEveryArrayBitForBit) {
   const Fixture f;
-  const std::string path = (std::filesystem::temp_directory_path() /
-                            ("reduced-" + std::to_string(::getpid()) + ".somared"))
-                               .string();
-  std::filesystem::remove(path);
+  const std::string path = somasim::testing::MakeTempDir("reduced") + "/beam.somared";
   WriteReducedModel(path, f.metadata, f.data);
   const LoadedReducedModel loaded = LoadReducedModel(path, &f.mesh);
   const KlModelData& d = loaded.model->data();
@@ -96,7 +94,7 @@ TEST(ReducedFile, RoundTripKeepsEveryArrayBitForBit) {
   } catch (const ReducedFileError& e) {
     EXPECT_NE(std::string(e.what()).find("never overwritten"), std::string::npos) << e.what();
   }
-  std::filesystem::remove(path);
+  std::filesystem::remove(path);  // for the "cannot read" below
   EXPECT_NE(Refusal("", nullptr).find("no SOMARED magic"), std::string::npos);
   try {
     LoadReducedModel(path, nullptr);
