@@ -13,6 +13,7 @@
 
 #include "server/models/fem/sparse_cholesky.h"
 #include "server/models/meshless/efg_internal.h"
+#include "server/models/meshless/efg_shared.h"
 #include "server/models/meshless/small_cholesky.h"
 
 namespace somasim::models::meshless {
@@ -515,25 +516,7 @@ void EfgModel::Advance(const StepInputs& inputs, TissueState* base) const {
 
   // 1. Springs at the node points: per node the supports' summed stiffness, every spring's
   // Σ k (target - X_I), and the distinct attached nodes with their summed stiffness.
-  std::fill(st->support.begin(), st->support.end(), 0.0);
-  st->springs.setZero();
-  std::fill(st->fixed_now.begin(), st->fixed_now.end(), uint8_t{0});
-  for (const int32_t node : inputs.fixed_nodes) {
-    const auto i = size_t(node);
-    if (st->fixed_now[i] != 0) continue;  // listed twice
-    st->fixed_now[i] = 1;
-    if (st->fixed_prev[i] == 0) st->anchor.col(node) = st->positions.col(node);
-    st->support[i] += penalty_;
-    st->springs.col(node) += penalty_ * (st->anchor.col(node) - rest_.col(node));
-  }
-  std::swap(st->fixed_now, st->fixed_prev);  // no allocation
-  for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
-    const int32_t node = inputs.prescribed_nodes[k];
-    st->support[size_t(node)] += penalty_;
-    st->springs.col(node) +=
-        penalty_ *
-        (inputs.prescribed_positions->col(static_cast<Eigen::Index>(k)) - rest_.col(node));
-  }
+  GatherSupportSprings(inputs, rest_, penalty_, st);
   for (const Attachment& grasp : inputs.attachments) {
     st->attached_sum[size_t(grasp.node)] += grasp.stiffness;
     st->springs.col(grasp.node) += grasp.stiffness * (grasp.target - rest_.col(grasp.node));

@@ -10,9 +10,9 @@
 #include <string>
 #include <vector>
 
-#include "server/models/meshless/block_pattern.h"
 #include "server/models/meshless/efg_internal.h"
 #include "server/models/meshless/efg_model.h"
+#include "server/models/meshless/efg_shared.h"
 
 namespace somasim::models::meshless {
 namespace {
@@ -23,41 +23,38 @@ using Eigen::Vector4d;
 
 [[noreturn]] void Refuse(const std::string& what) { throw std::invalid_argument("efg: " + what); }
 
-void CheckParameters(const EfgParameters& p) {
-  const auto finite_positive = [](double value, const char* what) {
-    if (!(value > 0.0) || !std::isfinite(value)) {
-      Refuse(std::string(what) + " must be a finite value > 0");
-    }
+}  // namespace
+
+void CheckEfgParameters(const EfgParameters& p, const std::string& prefix) {
+  const auto fail = [&prefix](const std::string& what) {
+    throw std::invalid_argument(prefix + what);
   };
-  const auto finite_non_negative = [](double value, const char* what) {
-    if (!(value >= 0.0) || !std::isfinite(value)) {
-      Refuse(std::string(what) + " must be a finite value >= 0");
-    }
+  const auto finite_positive = [&fail](double value, const char* what) {
+    if (!(value > 0.0) || !std::isfinite(value))
+      fail(std::string(what) + " must be a finite value > 0");
+  };
+  const auto finite_non_negative = [&fail](double value, const char* what) {
+    if (!(value >= 0.0) || !std::isfinite(value))
+      fail(std::string(what) + " must be a finite value >= 0");
   };
   finite_positive(p.youngs_modulus, "youngs_modulus [Pa]");
-  if (!(p.poisson_ratio > -1.0 && p.poisson_ratio < 0.5)) {
-    Refuse("poisson_ratio must lie in (-1, 0.5)");
-  }
+  if (!(p.poisson_ratio > -1.0 && p.poisson_ratio < 0.5))
+    fail("poisson_ratio must lie in (-1, 0.5)");
   finite_positive(p.density, "density [kg/m^3]");
   finite_non_negative(p.rayleigh_mass, "rayleigh_mass [1/s]");
   finite_non_negative(p.rayleigh_stiffness, "rayleigh_stiffness [s]");
   if (!(p.min_support_edge_factor >= 1.0) || !std::isfinite(p.min_support_edge_factor)) {
-    Refuse("min_support_edge_factor must be finite and >= 1");
+    fail("min_support_edge_factor must be finite and >= 1");
   }
-  if (p.gauss_points != 4 && p.gauss_points != 14) Refuse("gauss_points must be 4 or 14");
+  if (p.gauss_points != 4 && p.gauss_points != 14) fail("gauss_points must be 4 or 14");
   finite_positive(p.penalty_factor, "penalty_factor");
   finite_positive(p.speed_limit, "speed_limit [m/s]");
   if (!(p.max_low_rank_nodes >= 0 && p.max_low_rank_nodes <= EfgParameters::kMaxLowRankNodes)) {
-    Refuse("max_low_rank_nodes must lie in 0.." + std::to_string(EfgParameters::kMaxLowRankNodes));
+    fail("max_low_rank_nodes must lie in 0.." + std::to_string(EfgParameters::kMaxLowRankNodes));
   }
 }
 
-// A symmetric Gauss rule on a tetrahedron: barycentric points (4 each) and weights summing to 1
-// (multiply by the volume).
-struct TetRule {
-  std::vector<Vector4d> points;
-  std::vector<double> weights;
-};
+namespace {
 
 void AddOrbit(TetRule* rule, double weight, double a, double b, bool two_two) {
   if (!two_two) {  // the 4 permutations of (a, a, a, b)
@@ -81,6 +78,8 @@ void AddOrbit(TetRule* rule, double weight, double a, double b, bool two_two) {
   }
 }
 
+}  // namespace
+
 // 4 points: exact for polynomials of degree 2. 14 points: degree 5, all weights positive
 // (Walkington's rule; checked: every monomial of degree <= 5 on the unit tetrahedron to 2e-15).
 TetRule MakeTetRule(int points) {
@@ -95,11 +94,9 @@ TetRule MakeTetRule(int points) {
   return rule;
 }
 
-}  // namespace
-
 std::unique_ptr<EfgModel> EfgModel::FromTetMesh(const mesh::TetMesh& mesh,
                                                 const EfgParameters& parameters) {
-  CheckParameters(parameters);
+  CheckEfgParameters(parameters, "efg: ");
   const auto n = static_cast<int32_t>(mesh.vertices.cols());
   const auto num_tets = static_cast<int32_t>(mesh.tetrahedra.cols());
   if (n == 0 || num_tets == 0) Refuse("mesh: empty (no nodes or no tetrahedra)");
@@ -250,37 +247,18 @@ std::unique_ptr<EfgModel> EfgModel::FromTetMesh(const mesh::TetMesh& mesh,
       }
     }
   }
-  double max_diagonal = 0.0;
-  for (int32_t c = 0; c < n; ++c) {
-    const int64_t slot = model->block_start_[size_t(c)];  // the diagonal block comes first
-    const Eigen::Map<const Matrix3d> block(model->k_blocks_.data() + 9 * slot);
-    max_diagonal = std::max(max_diagonal, block.diagonal().maxCoeff());
-  }
-  model->penalty_ = parameters.penalty_factor * max_diagonal;
+  model->penalty_ =
+      parameters.penalty_factor * MaxBlockDiagonal(model->block_start_, model->k_blocks_);
 
   // The scalar lower CSC pattern of the 3N × 3N systems and each entry's block source.
   ScalarLowerPattern(model->block_start_, model->block_row_, &model->csc_col_start_,
                      &model->csc_rows_, &model->csc_source_);
 
   // Φ's LU factors (for the reports' û = Φ⁻¹ u).
-  {
-    std::vector<Eigen::Triplet<double>> triplets;
-    triplets.reserve(model->phi_value_.size());
-    for (int32_t i = 0; i < n; ++i) {
-      for (int32_t k = model->phi_start_[size_t(i)]; k < model->phi_start_[size_t(i) + 1]; ++k) {
-        triplets.emplace_back(i, model->phi_node_[size_t(k)], model->phi_value_[size_t(k)]);
-      }
-    }
-    Eigen::SparseMatrix<double> phi(n, n);
-    phi.setFromTriplets(triplets.begin(), triplets.end());
-    model->factors_ = std::make_unique<Factors>();
-    model->factors_->phi.compute(phi);
-    Eigen::SparseMatrix<double> phi_t = phi.transpose();
-    model->factors_->phi_transposed.compute(phi_t);
-    if (model->factors_->phi.info() != Eigen::Success ||
-        model->factors_->phi_transposed.info() != Eigen::Success) {
-      Refuse("the node-value matrix Φ (φ_J(X_I)) is singular: nodes too close together?");
-    }
+  model->factors_ = std::make_unique<Factors>();
+  if (!FactorNodeValueMatrix(model->phi_start_, model->phi_node_, model->phi_value_,
+                             &model->factors_->phi, &model->factors_->phi_transposed)) {
+    Refuse("the node-value matrix Φ (φ_J(X_I)) is singular: nodes too close together?");
   }
   return model;
 }

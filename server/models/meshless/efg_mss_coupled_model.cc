@@ -12,7 +12,7 @@
 #include <utility>
 
 #include "server/models/fem/sparse_cholesky.h"
-#include "server/models/meshless/block_pattern.h"
+#include "server/models/meshless/efg_shared.h"
 #include "server/models/particle_mesh.h"
 
 namespace somasim::models::meshless {
@@ -27,72 +27,14 @@ using Eigen::Vector4d;
 }
 
 void CheckParameters(const EfgMssCoupledParameters& parameters) {
-  const EfgParameters& p = parameters.efg;
-  const auto finite_positive = [](double value, const char* what) {
-    if (!(value > 0.0) || !std::isfinite(value)) {
-      Refuse(std::string(what) + " must be a finite value > 0");
-    }
-  };
+  CheckEfgParameters(parameters.efg, "efg-mss: efg.");
   const auto finite_non_negative = [](double value, const char* what) {
     if (!(value >= 0.0) || !std::isfinite(value)) {
       Refuse(std::string(what) + " must be a finite value >= 0");
     }
   };
-  finite_positive(p.youngs_modulus, "efg.youngs_modulus [Pa]");
-  if (!(p.poisson_ratio > -1.0 && p.poisson_ratio < 0.5)) {
-    Refuse("efg.poisson_ratio must lie in (-1, 0.5)");
-  }
-  finite_positive(p.density, "efg.density [kg/m^3]");
-  finite_non_negative(p.rayleigh_mass, "efg.rayleigh_mass [1/s]");
-  finite_non_negative(p.rayleigh_stiffness, "efg.rayleigh_stiffness [s]");
-  if (!(p.min_support_edge_factor >= 1.0) || !std::isfinite(p.min_support_edge_factor)) {
-    Refuse("efg.min_support_edge_factor must be finite and >= 1");
-  }
-  if (p.gauss_points != 4 && p.gauss_points != 14) Refuse("efg.gauss_points must be 4 or 14");
-  finite_positive(p.penalty_factor, "efg.penalty_factor");
-  finite_positive(p.speed_limit, "efg.speed_limit [m/s]");
   finite_non_negative(parameters.region_radius, "region_radius [m]");
   if (!parameters.region_centre.allFinite()) Refuse("region_centre [m] must be finite");
-}
-
-// The EFG's symmetric Gauss rules on a tetrahedron (efg_model.cc): barycentric points and
-// weights summing to 1. 4 points: degree 2; 14 points: degree 5 (Walkington).
-struct TetRule {
-  std::vector<Vector4d> points;
-  std::vector<double> weights;
-};
-
-void AddOrbit(TetRule* rule, double weight, double a, double b, bool two_two) {
-  if (!two_two) {  // the 4 permutations of (a, a, a, b)
-    for (int k = 0; k < 4; ++k) {
-      Vector4d p = Vector4d::Constant(a);
-      p[k] = b;
-      rule->points.push_back(p);
-      rule->weights.push_back(weight);
-    }
-    return;
-  }
-  constexpr std::array<std::array<int, 2>, 6> kPairs = {
-      {{0, 1}, {0, 2}, {0, 3}, {1, 2}, {1, 3}, {2, 3}}};
-  for (const auto& pair : kPairs) {  // the 6 permutations of (a, a, b, b)
-    Vector4d p = Vector4d::Constant(b);
-    p[pair[0]] = a;
-    p[pair[1]] = a;
-    rule->points.push_back(p);
-    rule->weights.push_back(weight);
-  }
-}
-
-TetRule MakeTetRule(int points) {
-  TetRule rule;
-  if (points == 4) {
-    AddOrbit(&rule, 0.25, 0.1381966011250105, 0.5854101966249685, false);
-  } else {
-    AddOrbit(&rule, 0.0734930431163619, 0.0927352503108912, 1.0 - 3.0 * 0.0927352503108912, false);
-    AddOrbit(&rule, 0.1126879257180162, 0.3108859192633006, 1.0 - 3.0 * 0.3108859192633006, false);
-    AddOrbit(&rule, 0.0425460207770812, 0.0455037041256496, 0.5 - 0.0455037041256496, true);
-  }
-  return rule;
 }
 
 // The state: the unknowns (the truth; positions are derived), the factors and every buffer a
@@ -414,38 +356,17 @@ std::unique_ptr<EfgMssCoupledModel> EfgMssCoupledModel::FromTetMesh(
       }
     }
   }
-  double max_diagonal = 0.0;
-  for (int32_t c = 0; c < n; ++c) {
-    const int64_t slot = model->block_start_[size_t(c)];  // the diagonal block comes first
-    max_diagonal = std::max(
-        max_diagonal,
-        Eigen::Map<const Matrix3d>(model->k_blocks_.data() + 9 * slot).diagonal().maxCoeff());
-  }
-  model->penalty_ = efg.penalty_factor * max_diagonal;
+  model->penalty_ = efg.penalty_factor * MaxBlockDiagonal(model->block_start_, model->k_blocks_);
 
   // 7. The scalar lower CSC pattern of the 3N × 3N systems and each entry's block source.
   ScalarLowerPattern(model->block_start_, model->block_row_, &model->csc_col_start_,
                      &model->csc_rows_, &model->csc_source_);
 
   // 8. G's LU factors (for the reports' q = G⁻¹ u).
-  {
-    std::vector<Eigen::Triplet<double>> triplets;
-    triplets.reserve(model->g_value_.size());
-    for (int32_t i = 0; i < n; ++i) {
-      for (int32_t k = model->g_start_[size_t(i)]; k < model->g_start_[size_t(i) + 1]; ++k) {
-        triplets.emplace_back(i, model->g_col_[size_t(k)], model->g_value_[size_t(k)]);
-      }
-    }
-    Eigen::SparseMatrix<double> g(n, n);
-    g.setFromTriplets(triplets.begin(), triplets.end());
-    model->factors_ = std::make_unique<Factors>();
-    model->factors_->g.compute(g);
-    Eigen::SparseMatrix<double> g_t = g.transpose();
-    model->factors_->g_transposed.compute(g_t);
-    if (model->factors_->g.info() != Eigen::Success ||
-        model->factors_->g_transposed.info() != Eigen::Success) {
-      Refuse("the node-value matrix Φ (φ_J(X_I)) is singular: nodes too close together?");
-    }
+  model->factors_ = std::make_unique<Factors>();
+  if (!FactorNodeValueMatrix(model->g_start_, model->g_col_, model->g_value_, &model->factors_->g,
+                             &model->factors_->g_transposed)) {
+    Refuse("the node-value matrix Φ (φ_J(X_I)) is singular: nodes too close together?");
   }
   return model;
 }
@@ -704,25 +625,7 @@ void EfgMssCoupledModel::Advance(const StepInputs& inputs, TissueState* base) co
 
   // 1. Springs at the node points: the supports' and all springs' summed stiffness per node and
   // Σ k (target - X_I).
-  std::fill(st->support.begin(), st->support.end(), 0.0);
-  st->springs.setZero();
-  std::fill(st->fixed_now.begin(), st->fixed_now.end(), uint8_t{0});
-  for (const int32_t node : inputs.fixed_nodes) {
-    const auto i = size_t(node);
-    if (st->fixed_now[i] != 0) continue;  // listed twice
-    st->fixed_now[i] = 1;
-    if (st->fixed_prev[i] == 0) st->anchor.col(node) = st->positions.col(node);
-    st->support[i] += penalty_;
-    st->springs.col(node) += penalty_ * (st->anchor.col(node) - rest_.col(node));
-  }
-  std::swap(st->fixed_now, st->fixed_prev);  // no allocation
-  for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
-    const int32_t node = inputs.prescribed_nodes[k];
-    st->support[size_t(node)] += penalty_;
-    st->springs.col(node) +=
-        penalty_ *
-        (inputs.prescribed_positions->col(static_cast<Eigen::Index>(k)) - rest_.col(node));
-  }
+  GatherSupportSprings(inputs, rest_, penalty_, st);
   std::copy(st->support.begin(), st->support.end(), st->stiffness.begin());
   for (const Attachment& grasp : inputs.attachments) {
     st->stiffness[size_t(grasp.node)] += grasp.stiffness;

@@ -1,10 +1,21 @@
-// The scalar lower CSC pattern of a 3N × 3N symmetric system stored as 3 × 3 blocks (the EFG
-// models' K, M̂ and their step systems): shared by EfgModel and EfgMssCoupledModel. Pure.
+// What EfgModel and EfgMssCoupledModel share: the parameter checks, the Gauss rules, the scalar
+// lower CSC pattern of their 3N × 3N block systems, the penalty's scale, the node-value
+// matrix's LU factors (build; defined in efg_model_build.cc where not inline), and the supports
+// as penalty springs (each step). Pure: no I/O.
 #pragma once
 
+#include <Eigen/Core>
+#include <Eigen/SparseCore>
+#include <Eigen/SparseLU>
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
+#include <string>
 #include <vector>
+
+#include "common/mesh/mesh_types.h"
+#include "server/models/meshless/efg_model.h"
+#include "server/models/tissue_model.h"
 
 namespace somasim::models::meshless {
 
@@ -32,6 +43,82 @@ inline void ScalarLowerPattern(const std::vector<int64_t>& block_start,
       }
       (*col_start)[3 * size_t(c) + size_t(cc) + 1] = static_cast<int32_t>(rows->size());
     }
+  }
+}
+
+// Refuses EFG parameters out of range: std::invalid_argument(prefix + the field and the rule).
+void CheckEfgParameters(const EfgParameters& p, const std::string& prefix);
+
+// A symmetric Gauss rule on a tetrahedron: barycentric points and weights summing to 1
+// (multiply by the volume). 4 points: degree 2; 14 points: degree 5 (Walkington).
+struct TetRule {
+  std::vector<Eigen::Vector4d> points;
+  std::vector<double> weights;
+};
+TetRule MakeTetRule(int points);
+
+// The largest diagonal entry of the N diagonal blocks (each column's first block; 3 × 3,
+// column-major in `blocks`) [N/m]: the scale of the supports' penalty.
+inline double MaxBlockDiagonal(const std::vector<int64_t>& block_start,
+                               const std::vector<double>& blocks) {
+  double max_diagonal = 0.0;
+  for (size_t c = 0; c + 1 < block_start.size(); ++c) {
+    const Eigen::Map<const Eigen::Matrix3d> block(blocks.data() + 9 * block_start[c]);
+    max_diagonal = std::max(max_diagonal, block.diagonal().maxCoeff());
+  }
+  return max_diagonal;
+}
+
+// LU factors of the N × N node-value matrix (row I: φ_J(X_I) for its CSR entries start[I] ..
+// start[I+1] of cols and values) and of its transpose, for u = Φ û and back. False when
+// either is singular (nodes too close together).
+inline bool FactorNodeValueMatrix(const std::vector<int32_t>& start,
+                                  const std::vector<int32_t>& cols,
+                                  const std::vector<double>& values,
+                                  Eigen::SparseLU<Eigen::SparseMatrix<double>>* lu,
+                                  Eigen::SparseLU<Eigen::SparseMatrix<double>>* lu_transposed) {
+  const auto n = static_cast<Eigen::Index>(start.size()) - 1;
+  std::vector<Eigen::Triplet<double>> triplets;
+  triplets.reserve(values.size());
+  for (Eigen::Index i = 0; i < n; ++i) {
+    for (int32_t k = start[size_t(i)]; k < start[size_t(i) + 1]; ++k) {
+      triplets.emplace_back(i, cols[size_t(k)], values[size_t(k)]);
+    }
+  }
+  Eigen::SparseMatrix<double> phi(n, n);
+  phi.setFromTriplets(triplets.begin(), triplets.end());
+  lu->compute(phi);
+  const Eigen::SparseMatrix<double> phi_t = phi.transpose();
+  lu_transposed->compute(phi_t);
+  return lu->info() == Eigen::Success && lu_transposed->info() == Eigen::Success;
+}
+
+// A step's supports as penalty springs at the node points (the first thing both models' steps
+// do): per node the supports' summed stiffness s_I [N/m] (`support`, num_nodes, zeroed here)
+// and Σ k (target − X_I) [N] (`springs`, 3 × num_nodes, zeroed here; grasps are the caller's to
+// add). A fixed node is held where it was when it became fixed (`anchor`, kept across steps;
+// `fixed_now` / `fixed_prev` mark the fixed nodes of this step and the last, swapped here);
+// prescribed nodes go to their positions. `State` has those members and `positions`.
+template <class State>
+void GatherSupportSprings(const StepInputs& inputs, const mesh::Points& rest, double penalty,
+                          State* st) {
+  std::fill(st->support.begin(), st->support.end(), 0.0);
+  st->springs.setZero();
+  std::fill(st->fixed_now.begin(), st->fixed_now.end(), uint8_t{0});
+  for (const int32_t node : inputs.fixed_nodes) {
+    const auto i = size_t(node);
+    if (st->fixed_now[i] != 0) continue;  // listed twice
+    st->fixed_now[i] = 1;
+    if (st->fixed_prev[i] == 0) st->anchor.col(node) = st->positions.col(node);
+    st->support[i] += penalty;
+    st->springs.col(node) += penalty * (st->anchor.col(node) - rest.col(node));
+  }
+  std::swap(st->fixed_now, st->fixed_prev);  // no allocation
+  for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
+    const int32_t node = inputs.prescribed_nodes[k];
+    st->support[size_t(node)] += penalty;
+    st->springs.col(node) +=
+        penalty * (inputs.prescribed_positions->col(static_cast<Eigen::Index>(k)) - rest.col(node));
   }
 }
 
