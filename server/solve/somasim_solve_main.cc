@@ -10,9 +10,14 @@
 #include <filesystem>
 #include <iostream>
 
+#include "common/app/blas_kernels.h"
 #include "common/mesh_io/mesh_error.h"
 #include "common/scene/scene.h"
 #include "server/solve/solve_runner.h"
+
+#ifndef SOMASIM_VERSION
+#define SOMASIM_VERSION "unknown"
+#endif
 
 namespace {
 
@@ -30,14 +35,21 @@ int RunMain(int argc, char** argv) {
   std::string scene_arg, out_dir;
   app.add_option("scene", scene_arg, "Scene file (*.scene.txtpb) or builtin:NAME")->required();
   app.add_option("--out", out_dir, "Folder for the results (created if missing)")->required();
+  app.set_version_flag("--version", std::string("somasim-solve ") + SOMASIM_VERSION);
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::CallForVersion& e) {
     return app.exit(e);
   } catch (const CLI::ParseError& e) {
     app.exit(e);
     return kExitUsage;
   }
+  // CHOLMOD's factorisations are most of the work: the CPU's own BLAS kernels, not the generic
+  // ones Debian's OpenBLAS falls back to on CPUs it does not know (common/app/blas_kernels.h;
+  // after the command line is parsed: --help and --version need no kernels).
+  somasim::app::PreferFastBlasKernels("somasim-solve", argv);
   try {
     somasim::scene::SceneLines lines;
     somasim::scene::Scene scene;
