@@ -81,6 +81,12 @@ std::vector<CaseResult> Evaluate(const models::fem::FemModel& full,
     double error = 0.0, norm = 0.0, node_error = 0.0, node_norm = 0.0, floor = 0.0;
     double step_seconds = 0.0;
     const auto steps = static_cast<int>(std::llround(c.end_time() / c.dt()));
+    // The nodes near the loaded one (kNearRadius), for the near / far split of each step.
+    std::vector<uint8_t> near(static_cast<size_t>(full.num_nodes()), 0);
+    for (Eigen::Index i = 0; i < rest.cols(); ++i) {
+      near[static_cast<size_t>(i)] = (rest.col(i) - rest.col(c.node())).norm() <= kNearRadius;
+    }
+    r.per_step.reserve(static_cast<size_t>(std::max(steps, 0)));
     for (int s = 1; s <= steps; ++s) {
       const double t = c.dt() * s;
       forces.col(c.node()) = CaseScale(c, t) * force;
@@ -94,12 +100,31 @@ std::vector<CaseResult> Evaluate(const models::fem::FemModel& full,
           std::chrono::duration<double>(std::chrono::steady_clock::now() - before).count();
       const mesh::Points u = full_state->positions - rest;
       const mesh::Points v = reduced_state->positions - rest;
-      error += (u - v).squaredNorm();
+      StepRecord record;
+      record.time_s = t;
+      record.scale = CaseScale(c, t);
+      const double step_error = (u - v).squaredNorm(), step_norm = u.squaredNorm();
+      double near_error = 0.0;
+      for (Eigen::Index i = 0; i < u.cols(); ++i) {
+        if (near[static_cast<size_t>(i)] != 0) near_error += (u.col(i) - v.col(i)).squaredNorm();
+      }
+      const auto relative = [step_norm](double squared) {
+        return step_norm > 0.0 ? std::sqrt(squared / step_norm) : 0.0;
+      };
+      record.field_error = relative(step_error);
+      record.near_error = relative(near_error);
+      record.far_error = relative(std::max(step_error - near_error, 0.0));
+      error += step_error;
       if (modes != nullptr) {
         const Eigen::Map<const Eigen::VectorXd> flat(u.data(), u.size());
-        floor += (flat - *modes * (modes->transpose() * flat)).squaredNorm();
+        const double step_floor = (flat - *modes * (modes->transpose() * flat)).squaredNorm();
+        floor += step_floor;
+        record.basis_error = relative(step_floor);
       }
-      norm += u.squaredNorm();
+      record.node_full_m = u.col(c.node());
+      record.node_reduced_m = v.col(c.node());
+      r.per_step.push_back(record);
+      norm += step_norm;
       node_error += (u.col(c.node()) - v.col(c.node())).squaredNorm();
       node_norm += u.col(c.node()).squaredNorm();
       r.full_end_m = u.col(c.node()).norm();

@@ -9,6 +9,7 @@
 // Offline (minutes on liver4055); allocates.
 #pragma once
 
+#include <Eigen/Core>
 #include <string>
 #include <vector>
 
@@ -17,6 +18,23 @@
 #include "server/models/reduced/kl_model.h"
 
 namespace somasim::reduce {
+
+// One step of a case (the curves behind a case's errors; `--per-step FILE` writes them).
+struct StepRecord {
+  double time_s = 0.0;
+  double scale = 0.0;        // the force's scale at this step (CaseScale)
+  double field_error = 0.0;  // |u − û| / |u| over every node at this step (0 when u = 0)
+  // |u − û| over the nodes within kNearRadius of the loaded node, and over the others, each
+  // relative to the whole |u| (near² + far² = field²).
+  double near_error = 0.0;
+  double far_error = 0.0;
+  double basis_error = -1.0;  // |u − B Bᵀ u| / |u| at this step, -1 without modes
+  Eigen::Vector3d node_full_m = Eigen::Vector3d::Zero();     // u at the loaded node [m]
+  Eigen::Vector3d node_reduced_m = Eigen::Vector3d::Zero();  // û there [m]
+};
+
+// The radius [m] (about a tool's dent) that splits a step's error into near and far.
+inline constexpr double kNearRadius = 0.02;
 
 struct CaseResult {
   std::string name, group;
@@ -30,7 +48,8 @@ struct CaseResult {
   // modes (B Bᵀ u, orthonormal B), which no model on these modes can beat by much; -1 when no
   // modes were given.
   double basis_error = -1.0;
-  double reduced_step_us = 0.0;  // the reduced model's mean step (wall time) [µs]
+  double reduced_step_us = 0.0;      // the reduced model's mean step (wall time) [µs]
+  std::vector<StepRecord> per_step;  // one per step
 };
 
 // The force scale of `c` at time t (piecewise linear; 1 without a history).

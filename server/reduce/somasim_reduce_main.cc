@@ -1,11 +1,11 @@
 // somasim-reduce: makes a reduced model of a scene's organ from its full FEM model (issue 12;
 // docs/reduced.md).
 //   somasim-reduce SCENE --out FILE.somared [--nonlinear-out NL.somared] [--organ ID]
-//   somasim-reduce SCENE --evaluate FILE.somared --plan PLAN.txtpb [--organ ID]
+//   somasim-reduce SCENE --evaluate FILE.somared --plan PLAN.txtpb [--per-step CSV] [--organ ID]
 // SCENE is a *.scene.txtpb with a `reduction` block (the sampling plan) for the organ. Prints
 // progress on stderr and one JSON object on stdout: the modes, eigenvalues, candidates for K
 // with their errors, creep curves, the build's wall time. --evaluate prints the evaluation
-// table (markdown) of the plan's cases instead.
+// table (markdown) of the plan's cases instead (--per-step: and each step's errors as CSV).
 // Exit codes: 0 written, 1 the build failed (no full solve converged), 2 bad command line,
 // 3 bad scene or mesh, 4 a file could not be read or written (FILE exists: never overwritten),
 // 70 a bug.
@@ -23,6 +23,7 @@
 #include <set>
 #include <sstream>
 
+#include "common/app/blas_kernels.h"
 #include "common/mesh/topology.h"
 #include "common/mesh_io/mesh_error.h"
 #include "common/scene/scene.h"
@@ -78,7 +79,8 @@ std::vector<int32_t> Spread(const std::vector<int32_t>& candidates, const somasi
 // --evaluate: the reduced model against the scene's full model on the plan's cases.
 int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
                   const std::string& scene_dir, const std::string& organ_id,
-                  const std::string& model_file, const std::string& plan_file) {
+                  const std::string& model_file, const std::string& plan_file,
+                  const std::string& per_step_file) {
   int organ_index = -1;
   for (int k = 0; k < s.organ_size(); ++k) {
     if (s.organ(k).id() == organ_id || (organ_id.empty() && organ_index < 0)) organ_index = k;
@@ -93,6 +95,10 @@ int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
     std::cerr << "somasim-reduce: " << organ.field << " (" << organ.id
               << ") is not a FEM model: nothing to compare with\n";
     return kExitBadInput;
+  }
+  if (!per_step_file.empty() && std::filesystem::exists(per_step_file)) {
+    std::cerr << "somasim-reduce: " << per_step_file << " exists (never overwritten)\n";
+    return kExitIo;
   }
   const reduce::LoadedReducedModel loaded = reduce::LoadReducedModel(model_file, &organ.volume);
   std::ifstream in(plan_file);
@@ -142,6 +148,28 @@ int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
     all_converged = all_converged && r.converged;
   }
   std::printf("\nwall time %.1f s\n", seconds);
+  if (!per_step_file.empty()) {
+    // One row per case and step: the curves behind the table.
+    std::ofstream csv(per_step_file);
+    csv << "case,time_s,scale,field_error,near_error,far_error,basis_error,"
+           "node_full_x_m,node_full_y_m,node_full_z_m,node_reduced_x_m,node_reduced_y_m,"
+           "node_reduced_z_m\n";
+    csv.precision(9);
+    for (const reduce::CaseResult& r : results) {
+      for (const reduce::StepRecord& p : r.per_step) {
+        csv << '"' << r.name << "\"," << p.time_s << ',' << p.scale << ',' << p.field_error << ','
+            << p.near_error << ',' << p.far_error << ',' << p.basis_error << ','
+            << p.node_full_m.x() << ',' << p.node_full_m.y() << ',' << p.node_full_m.z() << ','
+            << p.node_reduced_m.x() << ',' << p.node_reduced_m.y() << ',' << p.node_reduced_m.z()
+            << '\n';
+      }
+    }
+    csv.flush();
+    if (!csv) {
+      std::cerr << "somasim-reduce: cannot write " << per_step_file << "\n";
+      return kExitIo;
+    }
+  }
   return all_converged ? kExitOk : kExitFailed;
 }
 
@@ -149,7 +177,8 @@ int RunMain(int argc, char** argv) {
   CLI::App app{
       "somasim-reduce: make a reduced model (seed 000's Karhunen-Loeve model) of a scene's organ "
       "from its full FEM model, by the scene's sampling plan (its reduction block)"};
-  std::string scene_arg, out_file, organ_id, evaluate_file, plan_file, nonlinear_file;
+  std::string scene_arg, out_file, organ_id, evaluate_file, plan_file, nonlinear_file,
+      per_step_file;
   app.add_option("scene", scene_arg, "Scene file (*.scene.txtpb) with a reduction block")
       ->required();
   auto* out_option =
@@ -164,15 +193,26 @@ int RunMain(int argc, char** argv) {
       "Instead of building: compare this reduced model with the scene's full model on --plan");
   app.add_option("--plan", plan_file, "The evaluation plan (*.txtpb, EvaluationPlan)")
       ->needs(evaluate_option);
+  app.add_option("--per-step", per_step_file,
+                 "With --evaluate: also write each case's per-step errors to this CSV file "
+                 "(never overwritten)")
+      ->needs(evaluate_option);
   evaluate_option->excludes(out_option);
+  app.set_version_flag("--version", std::string("somasim-reduce ") + SOMASIM_VERSION);
   try {
     app.parse(argc, argv);
   } catch (const CLI::CallForHelp& e) {
+    return app.exit(e);
+  } catch (const CLI::CallForVersion& e) {
     return app.exit(e);
   } catch (const CLI::ParseError& e) {
     app.exit(e);
     return kExitUsage;
   }
+  // CHOLMOD's factorisations are most of the work: the CPU's own BLAS kernels, not the generic
+  // ones Debian's OpenBLAS falls back to on CPUs it does not know (common/app/blas_kernels.h;
+  // after the command line is parsed: --help and --version need no kernels).
+  somasim::app::PreferFastBlasKernels("somasim-reduce", argv);
   if (evaluate_file.empty() && out_file.empty()) {
     std::cerr << "somasim-reduce: give --out FILE (build) or --evaluate FILE --plan PLAN\n";
     return kExitUsage;
@@ -199,7 +239,7 @@ int RunMain(int argc, char** argv) {
       return RunEvaluation(
           s, lines, scene_dir,
           organ_id.empty() && plan_index >= 0 ? s.reduction(plan_index).organ() : organ_id,
-          evaluate_file, plan_file);
+          evaluate_file, plan_file, per_step_file);
     }
     if (plan_index < 0) {
       std::cerr << "somasim-reduce: " << scene_arg << " has no reduction block"

@@ -9,7 +9,9 @@
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
+#include <sstream>
 #include <string>
+#include <vector>
 
 #include "common/mesh_gen/builtin_organs.h"
 #include "server/reduce/builder.h"
@@ -109,9 +111,10 @@ TEST(ReduceProgram, WritesAReducedModelThatLoadsOnTheOrgansMesh) {
       << far
       << " force: 0 force: 0.2 force: -0.2 time: 0 scale: 0 "
          "time: 0.5 scale: 1 end_time: 1 dt: 0.1 }\n";
-  const testing::ToolRun evaluated =
-      testing::RunProgram("somasim-reduce", Scene("kidney_reduction.scene.txtpb") + " --evaluate " +
-                                                out + " --plan " + dir + "/plan.txtpb");
+  const std::string per_step = dir + "/per_step.csv";
+  const testing::ToolRun evaluated = testing::RunProgram(
+      "somasim-reduce", Scene("kidney_reduction.scene.txtpb") + " --evaluate " + out + " --plan " +
+                            dir + "/plan.txtpb --per-step " + per_step);
   ASSERT_EQ(evaluated.status, 0) << evaluated.out;
   std::printf("%s", evaluated.out.c_str());
   const auto percent = [&](const std::string& row, int column) {
@@ -124,6 +127,44 @@ TEST(ReduceProgram, WritesAReducedModelThatLoadsOnTheOrgansMesh) {
   EXPECT_LT(percent("trained", 3), 0.1);  // field error [%], printed to 0.1 %
   EXPECT_LT(percent("trained", 4), 0.1);  // loaded-node error [%]
   EXPECT_GT(percent("far", 3), 1.0);
+  // --per-step: one row per case and step (15 + 10), each step's field error split into the
+  // part near the loaded node and the rest (near² + far² = field², to the CSV's 9 digits), the
+  // trained case within 0.2 % at every step; an existing file is refused before any work.
+  {
+    std::ifstream csv(per_step);
+    std::string line;
+    ASSERT_TRUE(std::getline(csv, line));
+    EXPECT_EQ(line.rfind("case,time_s,scale,field_error,near_error,far_error,basis_error,", 0), 0u)
+        << line;
+    int rows = 0, far_rows = 0;
+    while (std::getline(csv, line)) {
+      ++rows;
+      const size_t quote = line.find('"', 1);
+      ASSERT_NE(quote, std::string::npos) << line;
+      const std::string name = line.substr(1, quote - 1);
+      std::vector<double> v;
+      std::stringstream fields(line.substr(quote + 2));
+      for (std::string f; std::getline(fields, f, ',');) v.push_back(std::stod(f));
+      ASSERT_EQ(v.size(), 12u) << line;
+      EXPECT_NEAR(v[3] * v[3] + v[4] * v[4], v[2] * v[2], 1e-6) << line;
+      EXPECT_GE(v[5], 0.0) << line;  // the basis floor (modes given)
+      if (name == "far") {
+        ++far_rows;
+        EXPECT_GT(std::abs(v[6]) + std::abs(v[7]) + std::abs(v[8]), 0.0) << line;
+      } else {
+        EXPECT_EQ(name, "trained");
+        EXPECT_LT(v[2], 2e-3) << line;
+      }
+    }
+    EXPECT_EQ(rows, 25);
+    EXPECT_EQ(far_rows, 10);
+    const testing::ToolRun exists = testing::RunProgram(
+        "somasim-reduce", Scene("kidney_reduction.scene.txtpb") + " --evaluate " + out +
+                              " --plan " + dir + "/plan.txtpb --per-step " + per_step);
+    EXPECT_EQ(exists.status, 4);
+    EXPECT_NE(exists.out.find("per_step.csv exists (never overwritten)"), std::string::npos)
+        << exists.out;
+  }
   // A plan naming a held node is refused by case.
   std::ofstream(dir + "/bad_plan.txtpb") << "cases { name: \"held\" node: " << 0
                                          << " force: 0 force: 0 force: 1 end_time: 1 dt: 0.1 }\n";
