@@ -13,6 +13,7 @@
 #include <nlohmann/json.hpp>
 #include <ostream>
 #include <sstream>
+#include <system_error>
 #include <vector>
 
 #include "common/mesh/geometry.h"
@@ -404,6 +405,14 @@ int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out, s
       throw MeshError(MeshErrorKind::kIo, pattern, {}, "cannot create a temporary directory");
     }
     const std::filesystem::path dir = pattern;
+    // TetGen's scratch folder goes however this ends (an error reading its output included).
+    struct RemoveWhenDone {
+      const std::filesystem::path& path;
+      ~RemoveWhenDone() {
+        std::error_code ignored;  // nothing to tell: the result is already out
+        std::filesystem::remove_all(path, ignored);
+      }
+    } const remove_when_done{dir};
     const std::string smesh = (dir / "surface.smesh").string();
     {
       std::ofstream f(smesh, std::ios::binary);
@@ -420,12 +429,10 @@ int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out, s
       err << "somasim-mesh: tetgen failed on " << options.input << ": "
           << (status < 0 ? error : "exit status " + std::to_string(status)) << "\n"
           << Tail(log, 8);
-      std::filesystem::remove_all(dir);
       return kExitTetrahedralize;
     }
     mesh_io::ReadOptions tetgen_read;  // TetGen wrote metres, our own surface's unit
     MeshData volume = mesh_io::ReadMeshFile((dir / "surface.1.node").string(), tetgen_read);
-    std::filesystem::remove_all(dir);
     volume.format = "TetGen (" + switches + ")";
     volume.triangles.resize(3, 0);  // keep the tetrahedra; the boundary follows from them
     const mesh_io::WriteReport report =

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
 #include <limits>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -317,6 +318,43 @@ TEST(SomasimMeshRender, DrawsABuiltinOrganAndRefusesBadOptions) {
     EXPECT_EQ(refused.status, kExitUsage) << bad << ": " << refused.out;
   }
   EXPECT_EQ(RunTool("render builtin:heart " + dir + "/h.png").status, kExitIo);
+}
+
+// TetGen's scratch folder is removed however the command ends: TetGen failing, or writing
+// output that cannot be read (a stand-in program for each).
+TEST(SomasimMeshTetrahedralize, LeavesNoScratchFolderWhenTetgenFailsOrWritesGarbage) {
+  const std::string dir = testing::MakeTempDir("somasim-tetgen-scratch");
+  const std::string scratch_parent = dir + "/tmp";
+  std::filesystem::create_directories(scratch_parent);
+  mesh_io::WriteMeshFile(dir + "/box.stl", testing::BoxSurface(1, 1, 1), {});
+  const std::string garbage = dir + "/garbage-tetgen.sh", failing = dir + "/failing-tetgen.sh";
+  // Called as `tetgen SWITCHES DIR/surface.smesh`: writes a truncated DIR/surface.1.node.
+  std::ofstream(garbage) << "#!/bin/sh\nprintf '8 3 0 0\\n0 0 0' > \"${2%.smesh}.1.node\"\n";
+  std::ofstream(failing) << "#!/bin/sh\necho 'tetgen: cannot mesh' >&2\nexit 1\n";
+  std::filesystem::permissions(garbage, std::filesystem::perms::owner_all);
+  std::filesystem::permissions(failing, std::filesystem::perms::owner_all);
+  const char* old_tmpdir = std::getenv("TMPDIR");
+  const std::string saved = old_tmpdir != nullptr ? old_tmpdir : "";
+  setenv("TMPDIR", scratch_parent.c_str(), 1);
+  TetrahedralizeOptions options;
+  options.input = dir + "/box.stl";
+  options.output = dir + "/out.vtu";
+  std::ostringstream out, err;
+  options.tetgen = garbage;
+  const int garbage_status = RunTetrahedralize(options, out, err);
+  options.tetgen = failing;
+  const int failing_status = RunTetrahedralize(options, out, err);
+  if (old_tmpdir != nullptr) {
+    setenv("TMPDIR", saved.c_str(), 1);
+  } else {
+    unsetenv("TMPDIR");
+  }
+  EXPECT_NE(garbage_status, kExitOk) << err.str();
+  EXPECT_EQ(failing_status, kExitTetrahedralize) << err.str();
+  EXPECT_NE(err.str().find("surface.1.node"), std::string::npos) << err.str();
+  EXPECT_NE(err.str().find("tetgen: cannot mesh"), std::string::npos) << err.str();
+  EXPECT_TRUE(std::filesystem::is_empty(scratch_parent))
+      << std::filesystem::directory_iterator(scratch_parent)->path();
 }
 
 }  // namespace
