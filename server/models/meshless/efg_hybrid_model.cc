@@ -12,6 +12,7 @@
 
 #include "server/models/fem/sparse_cholesky.h"
 #include "server/models/meshless/adaptivity.h"
+#include "server/models/meshless/efg_shared.h"
 #include "server/models/meshless/small_cholesky.h"
 
 namespace somasim::models::meshless {
@@ -436,18 +437,7 @@ void EfgHybridModel::Advance(const StepInputs& inputs, TissueState* base) const 
       st->support_nodes.push_back(node);
     }
   };
-  std::fill(st->fixed_now.begin(), st->fixed_now.end(), uint8_t{0});
-  for (const int32_t node : inputs.fixed_nodes) {
-    const auto i = size_t(node);
-    if (st->fixed_now[i] != 0) continue;  // listed twice
-    st->fixed_now[i] = 1;
-    if (st->fixed_prev[i] == 0) st->anchor.col(node) = st->positions.col(node);
-    add_support(node, st->anchor.col(node));
-  }
-  std::swap(st->fixed_now, st->fixed_prev);  // no allocation
-  for (size_t j = 0; j < inputs.prescribed_nodes.size(); ++j) {
-    add_support(inputs.prescribed_nodes[j], inputs.prescribed_positions->col(Index(j)));
-  }
+  ForEachSupport(inputs, st, add_support);
   for (const Attachment& grasp : inputs.attachments) {
     st->attached_sum[size_t(grasp.node)] += grasp.stiffness;
   }

@@ -93,33 +93,39 @@ inline bool FactorNodeValueMatrix(const std::vector<int32_t>& start,
   return lu->info() == Eigen::Success && lu_transposed->info() == Eigen::Success;
 }
 
-// A step's supports as penalty springs at the node points (the first thing both models' steps
-// do): per node the supports' summed stiffness s_I [N/m] (`support`, num_nodes, zeroed here)
-// and Σ k (target − X_I) [N] (`springs`, 3 × num_nodes, zeroed here; grasps are the caller's to
-// add). A fixed node is held where it was when it became fixed (`anchor`, kept across steps;
-// `fixed_now` / `fixed_prev` mark the fixed nodes of this step and the last, swapped here);
-// prescribed nodes go to their positions. `State` has those members and `positions`.
-template <class State>
-void GatherSupportSprings(const StepInputs& inputs, const mesh::Points& rest, double penalty,
-                          State* st) {
-  std::fill(st->support.begin(), st->support.end(), 0.0);
-  st->springs.setZero();
+// A step's supports, node by node: add(node, target) for every fixed node (held where it was
+// when it became fixed: `anchor`, kept across steps; `fixed_now` / `fixed_prev` mark the fixed
+// nodes of this step and the last, swapped here; a node listed twice counts once) and every
+// prescribed node (its prescribed position). `State` has those members and `positions`.
+template <class State, class Add>
+void ForEachSupport(const StepInputs& inputs, State* st, const Add& add) {
   std::fill(st->fixed_now.begin(), st->fixed_now.end(), uint8_t{0});
   for (const int32_t node : inputs.fixed_nodes) {
     const auto i = size_t(node);
     if (st->fixed_now[i] != 0) continue;  // listed twice
     st->fixed_now[i] = 1;
     if (st->fixed_prev[i] == 0) st->anchor.col(node) = st->positions.col(node);
-    st->support[i] += penalty;
-    st->springs.col(node) += penalty * (st->anchor.col(node) - rest.col(node));
+    add(node, st->anchor.col(node));
   }
   std::swap(st->fixed_now, st->fixed_prev);  // no allocation
   for (size_t k = 0; k < inputs.prescribed_nodes.size(); ++k) {
-    const int32_t node = inputs.prescribed_nodes[k];
-    st->support[size_t(node)] += penalty;
-    st->springs.col(node) +=
-        penalty * (inputs.prescribed_positions->col(static_cast<Eigen::Index>(k)) - rest.col(node));
+    add(inputs.prescribed_nodes[k], inputs.prescribed_positions->col(static_cast<Eigen::Index>(k)));
   }
+}
+
+// The supports as penalty springs at the node points (the first thing the EFG models' steps
+// do): per node the supports' summed stiffness s_I [N/m] (`support`, num_nodes) and
+// Σ k (target − X_I) [N] (`springs`, 3 × num_nodes), both zeroed first (grasps are the
+// caller's to add).
+template <class State>
+void GatherSupportSprings(const StepInputs& inputs, const mesh::Points& rest, double penalty,
+                          State* st) {
+  std::fill(st->support.begin(), st->support.end(), 0.0);
+  st->springs.setZero();
+  ForEachSupport(inputs, st, [st, penalty, &rest](int32_t node, const auto& target) {
+    st->support[size_t(node)] += penalty;
+    st->springs.col(node) += penalty * (target - rest.col(node));
+  });
 }
 
 }  // namespace somasim::models::meshless

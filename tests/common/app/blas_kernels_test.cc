@@ -61,13 +61,20 @@ TEST(BlasKernels, TheUsersOwnSettingIsNeverOverridden) {
   }
 }
 
-TEST(BlasKernels, OnlyGenericKernelsOnACapableCpuAreReplaced) {
-  const ScopedEnv unset("OPENBLAS_CORETYPE", nullptr);
-  const ScopedEnv unset_own("SOMASIM_BLAS_KERNELS", nullptr);
-  // The programs get OpenBLAS through CHOLMOD; this test loads it itself.
-  if (dlopen("libopenblas.so.0", RTLD_NOW | RTLD_GLOBAL) == nullptr) {
-    GTEST_SKIP() << "no OpenBLAS here: " << dlerror();
+// Neither variable set, and OpenBLAS in the process (the programs get it through CHOLMOD; these
+// tests load it themselves).
+class BlasKernelsUnset : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    if (dlopen("libopenblas.so.0", RTLD_NOW | RTLD_GLOBAL) == nullptr) {
+      GTEST_SKIP() << "no OpenBLAS here: " << dlerror();
+    }
   }
+  const ScopedEnv unset_{"OPENBLAS_CORETYPE", nullptr};
+  const ScopedEnv unset_own_{"SOMASIM_BLAS_KERNELS", nullptr};
+};
+
+TEST_F(BlasKernelsUnset, OnlyGenericKernelsOnACapableCpuAreReplaced) {
   const BlasKernelChoice choice = ChooseBlasKernels();
   EXPECT_FALSE(choice.reason.empty());
   ASSERT_FALSE(choice.loaded.empty()) << choice.reason;
@@ -80,12 +87,7 @@ TEST(BlasKernels, OnlyGenericKernelsOnACapableCpuAreReplaced) {
   }
 }
 
-TEST(BlasKernels, TheSolverRunsAgainWithTheChosenKernelsOnlyWhenItShould) {
-  const ScopedEnv unset("OPENBLAS_CORETYPE", nullptr);
-  const ScopedEnv unset_own("SOMASIM_BLAS_KERNELS", nullptr);
-  if (dlopen("libopenblas.so.0", RTLD_NOW | RTLD_GLOBAL) == nullptr) {
-    GTEST_SKIP() << "no OpenBLAS here: " << dlerror();
-  }
+TEST_F(BlasKernelsUnset, TheSolverRunsAgainWithTheChosenKernelsOnlyWhenItShould) {
   const BlasKernelChoice choice = ChooseBlasKernels();
   // A run that fails at once on its scene (exit 3) after choosing its kernels.
   const testing::ToolRun run =
