@@ -8,8 +8,11 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <limits>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "common/mesh_gen/structured_meshes.h"
 #include "server/models/fem/fem_model.h"
@@ -239,36 +242,39 @@ TEST(ReducedFile, TheNonlinearModelsStaticCorrectionRoundTripsAndIsChecked) {
   EXPECT_EQ(
       DecodeReducedModel(NonlinearFixture().Bytes(), "nl.somared", &f.mesh).metadata.arrays_size(),
       6);
-  NonlinearFixture g = f;
-  g.data.corrections = Eigen::MatrixXd::Zero(dofs, 3);  // 3 columns for 2 nodes
-  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("'corrections' is not 3 num_nodes × 3c"),
-            std::string::npos)
-      << Refusal(g.Bytes(), nullptr);
-  g = f;
-  g.data.correction_nodes = {2, 4000};
-  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("'correction_nodes' holds 4000"), std::string::npos)
-      << Refusal(g.Bytes(), nullptr);
-  g = f;
-  g.data.correction_scales = Eigen::MatrixXd::Constant(3, 2, 0.75);  // 3 rows for 2 magnitudes
-  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("'correction_scales' is not M × c"), std::string::npos)
-      << Refusal(g.Bytes(), nullptr);
-  g = f;
-  g.data.correction_magnitudes = {0.5, 0.1};
-  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("increasing"), std::string::npos)
-      << Refusal(g.Bytes(), nullptr);
-  g = f;
-  g.data.correction_scales(1, 1) = -0.5;
-  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("a correction scale is not finite and >= 0"),
-            std::string::npos)
-      << Refusal(g.Bytes(), nullptr);
-  g = f;
-  g.data.correction_nodes = {2, 2};
-  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("listed twice"), std::string::npos)
-      << Refusal(g.Bytes(), nullptr);
-  g = f;
-  g.data.corrections(7, 4) = std::numeric_limits<double>::infinity();
-  EXPECT_NE(Refusal(g.Bytes(), nullptr).find("a correction is not finite"), std::string::npos)
-      << Refusal(g.Bytes(), nullptr);
+  // Each damaged copy is refused, naming what is wrong.
+  const std::vector<std::pair<std::function<void(NonlinearFixture*)>, std::string>> damages = {
+      {[dofs](NonlinearFixture* g) { g->data.corrections = Eigen::MatrixXd::Zero(dofs, 3); },
+       "'corrections' is not 3 num_nodes × 3c"},  // 3 columns for 2 nodes
+      {[](NonlinearFixture* g) {
+         g->data.correction_nodes = {2, 4000};
+       },
+       "'correction_nodes' holds 4000"},
+      {[](NonlinearFixture* g) {
+         g->data.correction_scales = Eigen::MatrixXd::Constant(3, 2, 0.75);
+       },
+       "'correction_scales' is not M × c"},  // 3 rows for 2 magnitudes
+      {[](NonlinearFixture* g) {
+         g->data.correction_magnitudes = {0.5, 0.1};
+       },
+       "increasing"},
+      {[](NonlinearFixture* g) { g->data.correction_scales(1, 1) = -0.5; },
+       "a correction scale is not finite and >= 0"},
+      {[](NonlinearFixture* g) {
+         g->data.correction_nodes = {2, 2};
+       },
+       "listed twice"},
+      {[](NonlinearFixture* g) {
+         g->data.corrections(7, 4) = std::numeric_limits<double>::infinity();
+       },
+       "a correction is not finite"},
+  };
+  for (const auto& [damage, message] : damages) {
+    NonlinearFixture g = f;
+    damage(&g);
+    const std::string refusal = Refusal(g.Bytes(), nullptr);
+    EXPECT_NE(refusal.find(message), std::string::npos) << refusal;
+  }
   // Truncated inside the corrections: refused.
   const std::string bytes = f.Bytes();
   EXPECT_NE(Refusal(bytes.substr(0, bytes.size() - 100), &f.mesh).find("truncated at byte"),
