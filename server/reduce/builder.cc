@@ -1,6 +1,7 @@
 #include "server/reduce/builder.h"
 
 #include <Eigen/Cholesky>
+#include <Eigen/LU>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -340,17 +341,32 @@ NonlinearBuildReport BuildNonlinearModel(
   out.eigenvalues = pod.eigenvalues;
   out.kept_fraction = pod.kept_fraction;
   report("modes", 1, 1);
+  // The Petrov–Galerkin test basis Ψ = K0⁻¹ B (nonlinear_model.h, reduce_fem.h), on the rest
+  // factor the region nodes' responses used.
+  Eigen::MatrixXd test_modes;
+  if (plan.petrov_galerkin) {
+    report("test basis", 0, 1);
+    try {
+      test_modes =
+          models::reduced::PetrovGalerkinTestBasis(full, pod.modes, plan.fixed, &workspace);
+    } catch (const std::invalid_argument& e) {
+      Require(false, e.what());
+    }
+    report("test basis", 1, 1);
+  }
   report("cubature", 0, 1);
   // The cubature's training: at most max_cubature_states states, evenly spread over the list.
   std::vector<mesh::Points> training;
   const size_t take = std::min(states.size(), std::max<size_t>(plan.max_cubature_states, 1));
   for (size_t k = 0; k < take; ++k) training.push_back(states[k * states.size() / take]);
-  out.cubature = models::reduced::TrainCubature(full, pod.modes, training, plan.cubature);
+  out.cubature = models::reduced::TrainCubature(full, pod.modes, training, plan.cubature,
+                                                plan.petrov_galerkin ? &test_modes : nullptr);
   report("cubature", 1, 1);
   models::reduced::NonlinearModelData& d = out.data;
   d.rest = full.rest_positions();
   d.masses = full.masses();
   d.modes = std::move(pod.modes);
+  d.test_modes = std::move(test_modes);
   d.tets.resize(4, static_cast<Eigen::Index>(out.cubature.elements.size()));
   for (size_t k = 0; k < out.cubature.elements.size(); ++k) {
     d.tets.col(static_cast<Eigen::Index>(k)) = full.elements().tets.col(out.cubature.elements[k]);
@@ -359,8 +375,8 @@ NonlinearBuildReport BuildNonlinearModel(
   d.elements = out.cubature.elements;
   d.material = full.material();
   d.prony = full.prony();
-  // The static correction (nonlinear_model.h): R_p = K0⁻¹ E_p − B K̂0⁻¹ Bᵀ E_p with K̂0 the
-  // model's own reduced tangent at rest (its cubature's).
+  // The static correction (nonlinear_model.h): R_p = K0⁻¹ E_p − B K̂0⁻¹ Ψᵀ E_p with K̂0 the
+  // model's own reduced tangent at rest (its cubature's; Ψ = B for Galerkin).
   if (plan.static_correction && !correction_nodes.empty()) {
     report("correction", 0, 1);
     const auto model = models::reduced::NonlinearReducedModel::Create(d);
@@ -368,16 +384,17 @@ NonlinearBuildReport BuildNonlinearModel(
     Eigen::VectorXd force;
     Eigen::MatrixXd tangent;
     model->ReducedForces(*state, Eigen::VectorXd::Zero(d.modes.cols()), 0.0, &force, &tangent);
-    const Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (tangent + tangent.transpose()));
-    Require(llt.info() == Eigen::Success, "the reduced tangent at rest is not positive definite");
+    const Eigen::FullPivLU<Eigen::MatrixXd> rest_lu(tangent);
+    Require(rest_lu.isInvertible(), "the reduced tangent at rest is singular");
+    const Eigen::MatrixXd& test = d.test_modes.size() > 0 ? d.test_modes : d.modes;
     const auto c = static_cast<Eigen::Index>(correction_nodes.size());
     d.correction_nodes = correction_nodes;
     d.corrections.resize(d.modes.rows(), 3 * c);
     for (Eigen::Index k = 0; k < c; ++k) {
       const Eigen::MatrixXd bt =
-          d.modes.middleRows(3 * static_cast<Eigen::Index>(correction_nodes[size_t(k)]), 3)
-              .transpose();  // Bᵀ E_p: n × 3
-      d.corrections.middleCols<3>(3 * k) = responses[size_t(k)] - d.modes * llt.solve(bt);
+          test.middleRows(3 * static_cast<Eigen::Index>(correction_nodes[size_t(k)]), 3)
+              .transpose();  // Ψᵀ E_p: n × 3
+      d.corrections.middleCols<3>(3 * k) = responses[size_t(k)] - d.modes * rest_lu.solve(bt);
     }
     out.correction_nodes = c;
     // Its scale κ per node and magnitude: the reduced model's own elastic equilibrium under each
@@ -398,7 +415,7 @@ NonlinearBuildReport BuildNonlinearModel(
       if (k < 0) continue;
       if (dent.magnitude == 0) xi.setZero();  // a new direction: from rest
       const Eigen::MatrixXd rows = d.modes.middleRows(3 * dent.node, 3);  // B_r: 3 × n
-      const Eigen::VectorXd load = rows.transpose() * dent.force;
+      const Eigen::VectorXd load = test.middleRows(3 * dent.node, 3).transpose() * dent.force;
       bool solved = false;
       for (int iteration = 0; iteration < 40; ++iteration) {
         model->ReducedForces(*state, xi, 0.0, &force, &tangent);
@@ -408,7 +425,7 @@ NonlinearBuildReport BuildNonlinearModel(
           solved = true;
           break;
         }
-        const Eigen::VectorXd step = tangent.ldlt().solve(residual);
+        const Eigen::VectorXd step = tangent.partialPivLu().solve(residual);
         double alpha = 1.0;  // halve a step that inverts an element
         Eigen::VectorXd trial = xi + step;
         for (int h = 0; h < 20; ++h) {

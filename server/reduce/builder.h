@@ -48,6 +48,12 @@ struct SamplingPlan {
   // Its POD in the rest tangent's energy inner product (QᵀKQ) instead of the Euclidean one
   // (QᵀQ, the default: 3.6–7.7 % instead of 4.3–9.5 % on the liver's inside cases at 64 modes).
   bool energy_inner_product = false;
+  // Its tolerance: 1 % suits a Galerkin model; a Petrov–Galerkin one needs 0.1 % (somasim-reduce
+  // sets it when the scene does not): its equations Ψᵀ f are, at rest, displacements
+  // (Ψᵀ K0 B = BᵀB), so a relative error in them is one in ξ, where a Galerkin model's errors sit
+  // in the stiff directions K̂⁻¹ damps. (The 63-node beam: a trained load 1.95 % off at 1 %,
+  // 0.36 % at 0.1 %; Galerkin 0.25 % at 1 %.) Its smooth test fields need fewer elements for the
+  // same tolerance (39 at 0.1 % against Galerkin's 68).
   models::reduced::CubatureSettings cubature;
   // Static samples at every region node: the inward normal and `tilts` directions tilted from it
   // by tilt_deg, each at the magnitudes nonlinear_forces (ascending; empty: `forces` and the
@@ -61,6 +67,10 @@ struct SamplingPlan {
   // The nonlinear model's static correction at the region nodes (nonlinear_model.h): their
   // linear responses beyond the modes, for point forces there.
   bool static_correction = true;
+  // The nonlinear model's projection (nonlinear_model.h): Galerkin (Ψ = B, the default: an
+  // energy's stationary point, robust under any load) or Petrov–Galerkin with Ψ = K0⁻¹ B (the
+  // L2-best field in the linear range; docs/reduced.md compares them on the liver).
+  bool petrov_galerkin = false;
 };
 
 struct BuildProgress {

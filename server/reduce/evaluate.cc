@@ -131,6 +131,7 @@ std::vector<CaseResult> Evaluate(const models::fem::FemModel& full,
       r.reduced_end_m = v.col(c.node()).norm();
     }
     r.steps = steps;
+    r.reduced_unconverged = reduced_state->counters.solver_unconverged;
     r.reduced_step_us = steps > 0 ? 1e6 * step_seconds / steps : 0.0;
     r.field_error = norm > 0.0 ? std::sqrt(error / norm) : 0.0;
     r.node_error = node_norm > 0.0 ? std::sqrt(node_error / node_norm) : 0.0;

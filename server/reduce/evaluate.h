@@ -10,6 +10,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -44,6 +45,9 @@ struct CaseResult {
   double reduced_end_m = 0.0;  // |û| there [m]
   int steps = 0;
   bool converged = true;  // every full step converged
+  // Reduced steps whose Newton solve stopped short of its tolerance (TissueState's
+  // solver_unconverged): their fields are the last iterates.
+  int64_t reduced_unconverged = 0;
   // The basis's floor: the field error of the full solution's orthogonal projection onto the
   // modes (B Bᵀ u, orthonormal B), which no model on these modes can beat by much; -1 when no
   // modes were given.

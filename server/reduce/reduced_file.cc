@@ -160,7 +160,7 @@ std::unique_ptr<models::reduced::NonlinearReducedModel> DecodeNonlinear(
     fail("hyperelastic: unknown law '" + h.law() + "'");
   }
   for (const reduced::PronyInfo& p : m.prony()) data.prony.push_back({p.gamma(), p.tau_s()});
-  if (m.arrays_size() == 10) {  // the static correction
+  if (m.arrays_size() >= 10) {  // the static correction
     const uint64_t c = m.arrays(6).rows();
     if (m.arrays(6).cols() != 1) fail("'correction_nodes' is not c × 1");
     if (m.arrays(7).rows() != 3 * m.num_nodes() || m.arrays(7).cols() != 3 * c) {
@@ -183,6 +183,14 @@ std::unique_ptr<models::reduced::NonlinearReducedModel> DecodeNonlinear(
     data.correction_scales =
         Eigen::Map<const Eigen::MatrixXd>(arrays[9].data(), static_cast<Eigen::Index>(magnitudes),
                                           static_cast<Eigen::Index>(magnitudes > 0 ? c : 0));
+  }
+  if (m.arrays_size() == 7 || m.arrays_size() == 11) {  // the test basis, last
+    const int k = m.arrays_size() - 1;
+    if (m.arrays(k).rows() != 3 * m.num_nodes() || m.arrays(k).cols() != m.arrays(2).cols()) {
+      fail("'test_modes' is not 3 num_nodes × n like 'modes'");
+    }
+    data.test_modes =
+        Eigen::Map<const Eigen::MatrixXd>(arrays[static_cast<size_t>(k)].data(), 3 * en, ek);
   }
   data.penalty_stiffness = m.penalty_stiffness();
   data.max_local_stiffness = m.max_local_stiffness();
@@ -278,6 +286,11 @@ std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata,
                       static_cast<size_t>(data.correction_scales.rows()),
                       static_cast<size_t>(data.correction_scales.cols())});
   }
+  if (data.test_modes.size() > 0) {
+    arrays.push_back({"test_modes", data.test_modes.data(),
+                      static_cast<size_t>(data.test_modes.rows()),
+                      static_cast<size_t>(data.test_modes.cols())});
+  }
   return EncodeArrays(std::move(metadata), arrays);
 }
 
@@ -332,11 +345,13 @@ LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::strin
       nonlinear ? std::vector<std::string>{"rest", "masses", "modes", "tets", "weights", "elements"}
                 : std::vector<std::string>{
                       "rest", "masses", "modes", "stiffness_modes", "reduced_stiffness", "creep"};
-  // A nonlinear model may carry its static correction: four arrays more.
-  if (nonlinear && m.arrays_size() == 10) {
+  // A nonlinear model may carry its static correction (four arrays more) and then its
+  // Petrov–Galerkin test basis (one more).
+  if (nonlinear && m.arrays_size() >= 10) {
     names.insert(names.end(),
                  {"correction_nodes", "corrections", "correction_magnitudes", "correction_scales"});
   }
+  if (nonlinear && (m.arrays_size() == 7 || m.arrays_size() == 11)) names.push_back("test_modes");
   if (m.arrays_size() != static_cast<int>(names.size())) {
     fail("lists " + std::to_string(m.arrays_size()) + " arrays, not " +
          std::to_string(names.size()));

@@ -129,7 +129,9 @@ int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
       std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
   const std::string what =
       loaded.nonlinear != nullptr
-          ? "nonlinear, ECSW on " + std::to_string(loaded.nonlinear->num_elements()) + " elements"
+          ? std::string(loaded.nonlinear->petrov_galerkin() ? "nonlinear Petrov–Galerkin"
+                                                            : "nonlinear") +
+                ", ECSW on " + std::to_string(loaded.nonlinear->num_elements()) + " elements"
           : loaded.metadata.stiffness();
   std::printf("Reduced model %s (%s, %d modes; %s) against the full model of %s, plan %s\n\n",
               model_file.c_str(), loaded.metadata.kind().c_str(), loaded.num_modes(), what.c_str(),
@@ -140,11 +142,15 @@ int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
       "|---|---|---|---|---|---|---|---|---|\n");
   bool all_converged = true;
   for (const reduce::CaseResult& r : results) {
+    std::string notes;
+    if (!r.converged) notes += " (a full step did not converge)";
+    if (r.reduced_unconverged > 0) {
+      notes += " (" + std::to_string(r.reduced_unconverged) + " reduced steps unconverged)";
+    }
     std::printf("| %s | %s | %d | %.1f %% | %.1f %% | %.1f %% | %.3f | %.3f | %.0f |%s\n",
                 r.name.c_str(), r.group.c_str(), r.steps, 100.0 * r.field_error,
                 100.0 * r.node_error, 100.0 * r.basis_error, 1e3 * r.full_end_m,
-                1e3 * r.reduced_end_m, r.reduced_step_us,
-                r.converged ? "" : " (a full step did not converge)");
+                1e3 * r.reduced_end_m, r.reduced_step_us, notes.c_str());
     all_converged = all_converged && r.converged;
   }
   std::printf("\nwall time %.1f s\n", seconds);
@@ -293,8 +299,13 @@ int RunMain(int argc, char** argv) {
     if (r.creep_radius() > 0.0) plan.creep_radius = r.creep_radius();
     plan.nonlinear_pod.energy_fraction = plan.pod.energy_fraction;
     if (r.nonlinear_max_modes() > 0) plan.nonlinear_pod.max_modes = r.nonlinear_max_modes();
-    if (r.cubature_tolerance() > 0.0) plan.cubature.tolerance = r.cubature_tolerance();
     plan.energy_inner_product = r.nonlinear_inner_product() == scene::Reduction::ENERGY;
+    plan.petrov_galerkin = r.nonlinear_projection() == scene::Reduction::PETROV_GALERKIN;
+    if (r.cubature_tolerance() > 0.0) {
+      plan.cubature.tolerance = r.cubature_tolerance();
+    } else if (plan.petrov_galerkin) {
+      plan.cubature.tolerance = 0.001;  // what a Petrov–Galerkin model needs (builder.h)
+    }
     if (r.nonlinear_tilts() > 0) plan.tilts = r.nonlinear_tilts();
     if (r.nonlinear_tilt_deg() > 0.0) plan.tilt_deg = r.nonlinear_tilt_deg();
     plan.nonlinear_forces.assign(r.nonlinear_force().begin(), r.nonlinear_force().end());
@@ -351,8 +362,10 @@ int RunMain(int argc, char** argv) {
       nm.clear_eigenvalues();
       for (const double e : nl.eigenvalues) nm.add_eigenvalues(e);
       nm.set_kept_fraction(nl.kept_fraction);
-      nm.set_stiffness("nonlinear: ECSW cubature on " +
-                       std::to_string(nl.cubature.elements.size()) + " elements");
+      nm.set_stiffness(std::string(plan.petrov_galerkin ? "nonlinear, Petrov–Galerkin (Ψ = K0⁻¹ B)"
+                                                        : "nonlinear, Galerkin") +
+                       ": ECSW cubature on " + std::to_string(nl.cubature.elements.size()) +
+                       " elements");
       nm.set_cubature_residual(nl.cubature.relative_residual);
       nm.set_build_seconds(report.seconds + nl.seconds);
       reduce::WriteReducedModel(nonlinear_file, nm, nl.data);
@@ -360,6 +373,7 @@ int RunMain(int argc, char** argv) {
       nonlinear_summary["modes"] = nl.data.modes.cols();
       nonlinear_summary["snapshots"] = nl.snapshots;
       nonlinear_summary["kept_fraction"] = nl.kept_fraction;
+      nonlinear_summary["projection"] = plan.petrov_galerkin ? "petrov_galerkin" : "galerkin";
       nonlinear_summary["cubature_elements"] = nl.cubature.elements.size();
       nonlinear_summary["cubature_residual"] = nl.cubature.relative_residual;
       nonlinear_summary["cubature_converged"] = nl.cubature.converged;

@@ -171,11 +171,13 @@ NnlsResult SparseNnls(const Eigen::MatrixXd& g, const Eigen::VectorXd& b, double
 
 Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
                        std::span<const mesh::Points> displacements,
-                       const CubatureSettings& settings) {
+                       const CubatureSettings& settings, const Eigen::MatrixXd* test_modes) {
   Require(full.kind() == fem::FemKind::kHyperelastic,
           "the nonlinear reduced model needs a hyperelastic full model");
   const Eigen::Index nodes = full.num_nodes(), n = modes.cols();
   Require(modes.rows() == 3 * nodes && n >= 1, "modes must be 3N × n");
+  Require(test_modes == nullptr || (test_modes->rows() == modes.rows() && test_modes->cols() == n),
+          "test modes must be 3N × n like the modes");
   Require(std::isfinite(settings.tolerance) && settings.tolerance > 0.0 && settings.tolerance < 1.0,
           "tolerance must lie in (0, 1)");
   Require(settings.max_elements >= 1, "max_elements must be >= 1");
@@ -197,6 +199,10 @@ Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
     const Eigen::Matrix<double, 9, Eigen::Dynamic> d = ElementGradientMap(
         modes, full.elements().tets.col(e), full.elements().gradients.middleCols<4>(4 * e));
     if (d.cwiseAbs().maxCoeff() == 0.0) continue;  // the modes do not strain it
+    const Eigen::Matrix<double, 9, Eigen::Dynamic> test =
+        test_modes == nullptr ? d
+                              : ElementGradientMap(*test_modes, full.elements().tets.col(e),
+                                                   full.elements().gradients.middleCols<4>(4 * e));
     for (Eigen::Index s = 0; s < snapshots; ++s) {
       Eigen::Matrix<double, 9, 1> h = d * xi[static_cast<size_t>(s)];
       const Eigen::Matrix3d f = Eigen::Matrix3d::Identity() + Eigen::Map<Eigen::Matrix3d>(h.data());
@@ -206,7 +212,7 @@ Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
       }
       const Eigen::Matrix3d p = fem::FirstPiolaStress(full.material(), f);
       g.block(n * s, e, n, 1) =
-          -volume * (d.transpose() * Eigen::Map<const Eigen::Matrix<double, 9, 1>>(p.data()));
+          -volume * (test.transpose() * Eigen::Map<const Eigen::Matrix<double, 9, 1>>(p.data()));
     }
   }
   Cubature result;

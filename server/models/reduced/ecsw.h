@@ -55,10 +55,13 @@ struct Cubature {
 };
 
 // ECSW weights for the hyperelastic `full` model (FemKind::kHyperelastic) on `modes`
-// (3N × n) from training displacements (each 3 × N [m]). Throws std::invalid_argument for
-// another kind of model, sizes that do not match, or no usable snapshot.
+// (3N × n) from training displacements (each 3 × N [m]). With `test_modes` Ψ (3N × n; a
+// Petrov–Galerkin model, nonlinear_model.h) the forces fitted are Ψᵀ f (g_es = −V_e D̃_eᵀ vec P,
+// D̃_e from Ψ), the equations that model solves. Throws std::invalid_argument for another kind
+// of model, sizes that do not match, or no usable snapshot.
 Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
                        std::span<const mesh::Points> displacements,
-                       const CubatureSettings& settings);
+                       const CubatureSettings& settings,
+                       const Eigen::MatrixXd* test_modes = nullptr);
 
 }  // namespace somasim::models::reduced

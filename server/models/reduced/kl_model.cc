@@ -173,8 +173,9 @@ void KlReducedModel::Advance(const StepInputs& inputs, TissueState* base) const 
   }
   s->rhs += s->multiplier * s->load;
   // Springs: grasps, prescribed nodes, fixed nodes the modes can move.
-  const bool springs = SpringTerms(data_.modes, data_.rest, moves_.data(), data_.penalty_stiffness,
-                                   inputs, s->positions, &s->springs, &s->spring_rhs);
+  const bool springs =
+      SpringTerms(data_.modes, data_.modes, data_.rest, moves_.data(), data_.penalty_stiffness,
+                  inputs, s->positions, &s->springs, &s->spring_rhs);
   if (springs) {
     s->system = data_.reduced_stiffness + s->springs;
     s->rhs += s->spring_rhs;

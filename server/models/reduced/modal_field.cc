@@ -235,9 +235,10 @@ int32_t AddProjectedLoads(const Eigen::MatrixXd& modes, const mesh::Points& f, E
   return loaded;
 }
 
-bool SpringTerms(const Eigen::MatrixXd& modes, const mesh::Points& rest, const uint8_t* moves,
-                 double penalty, const StepInputs& inputs, const mesh::Points& positions,
-                 Eigen::MatrixXd* matrix, Eigen::VectorXd* rhs) {
+bool SpringTerms(const Eigen::MatrixXd& modes, const Eigen::MatrixXd& test_modes,
+                 const mesh::Points& rest, const uint8_t* moves, double penalty,
+                 const StepInputs& inputs, const mesh::Points& positions, Eigen::MatrixXd* matrix,
+                 Eigen::VectorXd* rhs) {
   bool any = false;
   const auto spring = [&](int32_t node, const Eigen::Vector3d& target, double k) {
     if (k == 0.0) return;
@@ -247,8 +248,9 @@ bool SpringTerms(const Eigen::MatrixXd& modes, const mesh::Points& rest, const u
       any = true;
     }
     const auto rows = modes.middleRows(3 * node, 3);
-    matrix->noalias() += k * rows.transpose() * rows;
-    rhs->noalias() += k * rows.transpose() * (target - rest.col(node));
+    const auto test_rows = test_modes.middleRows(3 * node, 3);
+    matrix->noalias() += k * test_rows.transpose() * rows;
+    rhs->noalias() += k * test_rows.transpose() * (target - rest.col(node));
   };
   for (const Attachment& a : inputs.attachments) spring(a.node, a.target, a.stiffness);
   for (size_t p = 0; p < inputs.prescribed_nodes.size(); ++p) {

@@ -83,11 +83,13 @@ int32_t AddProjectedLoads(const Eigen::MatrixXd& modes, const mesh::Points& f, E
 
 // The springs of a reduced model's step: grasps (their stiffness), prescribed nodes and fixed
 // nodes the modes can move (`moves`, N flags; to where they are in `positions`), each at
-// `penalty` [N/m]. With B_i node i's rows of B (3 × n): matrix = Σ k B_iᵀ B_i (n × n) and
-// rhs = Σ k B_iᵀ (target − X_i) (n), both zeroed first — only when some spring acts: returns
+// `penalty` [N/m]. With B_i and Ψ_i node i's rows of the modes and of the test modes (3 × n;
+// Galerkin: the same matrix twice): matrix = Σ k Ψ_iᵀ B_i (n × n) and
+// rhs = Σ k Ψ_iᵀ (target − X_i) (n), both zeroed first — only when some spring acts: returns
 // whether one did (matrix and rhs are then untouched). Allocates nothing.
-bool SpringTerms(const Eigen::MatrixXd& modes, const mesh::Points& rest, const uint8_t* moves,
-                 double penalty, const StepInputs& inputs, const mesh::Points& positions,
-                 Eigen::MatrixXd* matrix, Eigen::VectorXd* rhs);
+bool SpringTerms(const Eigen::MatrixXd& modes, const Eigen::MatrixXd& test_modes,
+                 const mesh::Points& rest, const uint8_t* moves, double penalty,
+                 const StepInputs& inputs, const mesh::Points& positions, Eigen::MatrixXd* matrix,
+                 Eigen::VectorXd* rhs);
 
 }  // namespace somasim::models::reduced

@@ -23,13 +23,15 @@ class NonlinearState final : public ModalState {
   // the elastic stress S^e of the last step (9 × m) [Pa].
   Eigen::VectorXd history, good_history, elastic_last, good_elastic_last;
   // Scratch.
-  Eigen::VectorXd grad, stress, offset;  // 9m: vec(F − I), w V vec(P), the step's offset
-  Eigen::MatrixXd factors;               // 9m × n: blockdiag(w V ∂P/∂F) D
-  Eigen::MatrixXd tangent, springs;      // n × n: the factor's matrix, the springs' part
-  Eigen::MatrixXd tissue_tangent;        // n × n: the tissue's, as last assembled
-  Eigen::LLT<Eigen::MatrixXd> llt;       // of the last tangent (plus springs)
+  Eigen::VectorXd grad, stress, offset;     // 9m: vec(F − I), w V vec(P), the step's offset
+  Eigen::MatrixXd factors;                  // 9m × n: blockdiag(w V ∂P/∂F) D
+  Eigen::MatrixXd tangent, springs;         // n × n: the factor's matrix, the springs' part
+  Eigen::MatrixXd tissue_tangent;           // n × n: the tissue's, as last assembled
+  Eigen::LLT<Eigen::MatrixXd> llt;          // of the last tangent (plus springs), Galerkin
+  Eigen::PartialPivLU<Eigen::MatrixXd> lu;  // the same, Petrov–Galerkin (not symmetric)
+  bool petrov = false;
   Eigen::VectorXd external, internal, residual, delta, spring_rhs, trial;  // n
-  mutable Eigen::MatrixXd local;  // n × 3: LocalStiffness's K̂⁻¹ B_iᵀ
+  mutable Eigen::MatrixXd local;  // n × 3: LocalStiffness's K̂⁻¹ B_iᵀ (or K̂⁻¹ Ψ_iᵀ)
   double factor_springs = 0.0;    // the springs the factor holds (a signature; 0: none)
   // The static correction (c correction nodes): each node's effective force e of the last
   // step and its QLV variables [N] (3 × c, 3 × c·terms, term-minor), their good copies; the
@@ -40,6 +42,27 @@ class NonlinearState final : public ModalState {
   bool corr_nonzero = false, corr_prev_nonzero = false;
   bool good_corr_nonzero = false, good_corr_prev_nonzero = false;
   bool corr_active() const { return corr_nonzero || corr_prev_nonzero; }
+
+  // Factorises `tangent` (true: it is regular / positive definite) and solves with the factor
+  // in place (allocation-free: the factors are sized by MakeState).
+  bool Factorise() {
+    if (petrov) {
+      lu.compute(tangent);
+      // PartialPivLU does not report singularity: a zero or non-finite pivot is the sign.
+      const auto diagonal = lu.matrixLU().diagonal();
+      return diagonal.allFinite() && diagonal.cwiseAbs().minCoeff() > 0.0;
+    }
+    llt.compute(tangent);
+    return llt.info() == Eigen::Success;
+  }
+  template <typename Derived>
+  void SolveInPlace(Eigen::MatrixBase<Derived>& v) const {
+    if (petrov) {
+      v = lu.solve(v);
+    } else {
+      llt.solveInPlace(v);
+    }
+  }
 
   // Adds δ to the positions and (δ − δ_prev) / dt to the velocities just rebuilt from ξ.
   void ApplyCorrection() {
@@ -146,6 +169,12 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
           "modes must be 3N × n with 1 <= n <= 3N, got " + std::to_string(data.modes.rows()) +
               " × " + std::to_string(n) + " for N = " + std::to_string(nodes));
   Require(data.modes.allFinite(), "a mode is not finite");
+  Require(data.test_modes.size() == 0 ||
+              (data.test_modes.rows() == data.modes.rows() && data.test_modes.cols() == n),
+          "test_modes must be empty or 3N × n like the modes, got " +
+              std::to_string(data.test_modes.rows()) + " × " +
+              std::to_string(data.test_modes.cols()));
+  Require(data.test_modes.allFinite(), "a test mode is not finite");
   const Eigen::Index m = data.tets.cols();
   Require(m >= 1, "no sampled element");
   Require(static_cast<Eigen::Index>(data.weights.size()) == m,
@@ -240,12 +269,22 @@ NonlinearReducedModel::NonlinearReducedModel(NonlinearModelData data,
     gradient_map_.middleRows(9 * e, 9) =
         ElementGradientMap(data_.modes, data_.tets.col(e), elements.gradients.middleCols<4>(4 * e));
   }
+  if (petrov_galerkin()) {
+    test_map_ = Eigen::MatrixXd::Zero(9 * m, n);
+    for (Eigen::Index e = 0; e < m; ++e) {
+      test_map_.middleRows(9 * e, 9) = ElementGradientMap(data_.test_modes, data_.tets.col(e),
+                                                          elements.gradients.middleCols<4>(4 * e));
+    }
+  }
   gravity_modes_ = Eigen::MatrixXd::Zero(n, 3);
   moves_.assign(static_cast<size_t>(nodes), 0);
   const double mode_scale = data_.modes.cwiseAbs().maxCoeff();
   for (Eigen::Index i = 0; i < nodes; ++i) {
     const auto rows = data_.modes.middleRows(3 * i, 3);
-    for (int a = 0; a < 3; ++a) gravity_modes_.col(a) += data_.masses[i] * rows.row(a).transpose();
+    const auto test_rows = TestModes().middleRows(3 * i, 3);
+    for (int a = 0; a < 3; ++a) {
+      gravity_modes_.col(a) += data_.masses[i] * test_rows.row(a).transpose();
+    }
     moves_[static_cast<size_t>(i)] = rows.cwiseAbs().maxCoeff() > 1e-9 * mode_scale ? 1 : 0;
   }
   field_ = ModalField(data_.modes);
@@ -322,10 +361,15 @@ std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
   state->local = Eigen::MatrixXd::Zero(n, 3);
   // The tangent at rest, factorised: the first step's Newton and LocalStiffness start from it.
   TangentFactors(state->grad.data(), 1.0, nullptr, state->factors.data());
-  state->tangent.noalias() = gradient_map_.transpose() * state->factors;
+  state->tangent.noalias() = TestMap().transpose() * state->factors;
   state->tissue_tangent = state->tangent;
-  state->llt = Eigen::LLT<Eigen::MatrixXd>(n);
-  state->llt.compute(state->tangent);
+  state->petrov = petrov_galerkin();
+  if (state->petrov) {
+    state->lu = Eigen::PartialPivLU<Eigen::MatrixXd>(n);
+  } else {
+    state->llt = Eigen::LLT<Eigen::MatrixXd>(n);
+  }
+  state->Factorise();
   return state;
 }
 
@@ -334,10 +378,11 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
   // Loads: gravity and the tool's forces (projected), then the springs' constant part.
   s->external.noalias() = gravity_modes_ * inputs.gravity;
   if (inputs.external_forces != nullptr) {
-    AddProjectedLoads(data_.modes, *inputs.external_forces, &s->external);
+    AddProjectedLoads(TestModes(), *inputs.external_forces, &s->external);
   }
-  const bool springs = SpringTerms(data_.modes, data_.rest, moves_.data(), data_.penalty_stiffness,
-                                   inputs, s->positions, &s->springs, &s->spring_rhs);
+  const bool springs =
+      SpringTerms(data_.modes, TestModes(), data_.rest, moves_.data(), data_.penalty_stiffness,
+                  inputs, s->positions, &s->springs, &s->spring_rhs);
   const double g = BeginViscous(data_.prony, inputs.dt, s->history, s->elastic_last, &s->offset);
   const double* offset = data_.prony.empty() ? nullptr : s->offset.data();
   // Newton's method, reusing the last factor while it halves the residual, with a backtracking
@@ -356,7 +401,7 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
   const auto evaluate = [&](const Eigen::VectorXd& xi, double* norm) {
     s->grad.noalias() = gradient_map_ * xi;
     if (!Stresses(s->grad.data(), g, offset, s->stress.data())) return false;
-    s->internal.noalias() = -(gradient_map_.transpose() * s->stress);
+    s->internal.noalias() = -(TestMap().transpose() * s->stress);
     s->residual = s->external + s->internal;
     scale = s->external.norm() + s->internal.norm();
     if (springs) {
@@ -373,12 +418,11 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
   const auto refactor = [&](bool assemble) {
     if (assemble) {
       TangentFactors(s->grad.data(), g, offset, s->factors.data());
-      s->tissue_tangent.noalias() = gradient_map_.transpose() * s->factors;
+      s->tissue_tangent.noalias() = TestMap().transpose() * s->factors;
     }
     s->tangent = s->tissue_tangent;
     if (springs) s->tangent += s->springs;
-    s->llt.compute(s->tangent);
-    return s->llt.info() == Eigen::Success;
+    return s->Factorise();
   };
   double norm = 0.0;
   bool ok = evaluate(s->xi, &norm);
@@ -425,7 +469,7 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
       fresh = true;
     }
     s->delta = s->residual;
-    s->llt.solveInPlace(s->delta);
+    s->SolveInPlace(s->delta);
     double alpha = 1.0, trial_norm = 0.0;
     int halvings = 0;
     while (true) {
@@ -438,7 +482,7 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
         if (!ok) break;
         fresh = true;
         s->delta = s->residual;
-        s->llt.solveInPlace(s->delta);
+        s->SolveInPlace(s->delta);
         alpha = 1.0;
         continue;
       }
@@ -571,12 +615,12 @@ void NonlinearReducedModel::ReducedForces(const TissueState& state, const Eigen:
   if (!Stresses(grad.data(), g, off, stress.data())) {
     force->setConstant(xi.size(), std::numeric_limits<double>::quiet_NaN());
   } else {
-    *force = -(gradient_map_.transpose() * stress);
+    *force = -(TestMap().transpose() * stress);
   }
   if (tangent != nullptr) {
     Eigen::MatrixXd factors(9 * m, xi.size());
     TangentFactors(grad.data(), g, off, factors.data());
-    *tangent = gradient_map_.transpose() * factors;
+    *tangent = TestMap().transpose() * factors;
   }
 }
 
@@ -585,9 +629,10 @@ Eigen::Matrix3d NonlinearReducedModel::LocalStiffness(const TissueState& state,
   if (node < 0 || node >= num_nodes()) return Eigen::Matrix3d::Zero();
   const auto& s = static_cast<const NonlinearState&>(state);
   const auto rows = data_.modes.middleRows(3 * node, 3);  // B_i: 3 × n
-  s.local = rows.transpose();
-  s.llt.solveInPlace(s.local);
-  const Matrix3d compliance = rows * s.local;
+  s.local = TestModes().middleRows(3 * node, 3).transpose();
+  s.SolveInPlace(s.local);
+  Matrix3d compliance = rows * s.local;
+  compliance = 0.5 * (compliance + compliance.transpose()).eval();
   const Eigen::SelfAdjointEigenSolver<Matrix3d> eigen(compliance);
   Eigen::Vector3d stiffness;
   for (int k = 0; k < 3; ++k) {
@@ -598,8 +643,14 @@ Eigen::Matrix3d NonlinearReducedModel::LocalStiffness(const TissueState& state,
 }
 
 void NonlinearReducedModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
-  Eigen::VectorXd reduced;
-  ReducedForces(state, Coordinates(state), 0.0, &reduced, nullptr);
+  // Bᵀ f_int (with either projection: the part of the forces the modes see).
+  const Eigen::VectorXd grad = gradient_map_ * Coordinates(state);
+  Eigen::VectorXd stress(grad.size()), reduced;
+  if (Stresses(grad.data(), 1.0, nullptr, stress.data())) {
+    reduced = -(gradient_map_.transpose() * stress);
+  } else {
+    reduced.setConstant(num_modes(), std::numeric_limits<double>::quiet_NaN());
+  }
   forces->resize(3, num_nodes());
   Eigen::Map<Eigen::VectorXd>(forces->data(), forces->size()).noalias() = data_.modes * reduced;
 }

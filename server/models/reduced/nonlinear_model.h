@@ -45,10 +45,30 @@
 // acts on external forces only; its amplitude follows the material's stiffening through a
 // calibrated scale κ_p(|e|) (below) (a grasp's or probe's spring is not corrected, nor is
 // LocalStiffness), and costs one 3N pass per loaded correction node per step.
+//
+// Petrov–Galerkin (optional: a scene's `nonlinear_projection: PETROV_GALERKIN`; docs/reduced.md
+// compares it with Galerkin on the liver): the equations are tested with Ψ instead of B,
+//   r(ξ) = Ψᵀ f_ext + Ψᵀ f_int(X + B ξ) = 0,   Ψ = K0⁻¹ B,
+// so that for a linear K0 the reduced solution is ξ = (BᵀB)⁻¹ Bᵀ u: the L2 projection of the
+// full solution u = K0⁻¹ f onto the modes — the best field the basis holds — where Galerkin's is
+// the best in K0's energy norm, which weighs the stiff dent under the tool and leaves the soft
+// motion of the organ around it (most of the field's L2 norm) 2–4× the basis's floor (measured on
+// the liver). Nonlinear: the residual's linearised displacement K0⁻¹ r has no component in
+// span(B). Each sampled element carries a second gradient map D̃_ê (from Ψ) and
+//   Ψᵀ f_int ≈ −Σ_ê w_ê V_ê D̃_êᵀ vec P(F_ê),   K̂ = Σ_ê w_ê V_ê D̃_êᵀ (∂P/∂F)_ê D_ê,
+// the cubature trained on Ψᵀ f (ecsw.h). K̂ is not symmetric (an LU instead of a Cholesky
+// factor; at rest K̂ = BᵀB, the identity for orthonormal modes) and the forces are no longer an
+// energy's gradient: under large strain K̂ can turn singular (a 6 cm beam pushed 1.5 cm: an
+// eigenvalue of −1e-3 against 1 at rest) where Galerkin's, positive definite, cannot — Newton
+// then stops unconverged (counted). Galerkin stays the default for that. Loads, springs and gravity
+// are tested with Ψ: a spring's term is k Ψ_iᵀ (target − X_i − B_i ξ). The static correction is
+// then R_p = K0⁻¹ E_p − B K̂0⁻¹ Ψ_pᵀ (in the linear range still the full model for point forces at
+// p), and LocalStiffness the inverse of the symmetric part of the compliance B_i K̂⁻¹ Ψ_iᵀ.
 #pragma once
 
 #include <Eigen/Cholesky>
 #include <Eigen/Core>
+#include <Eigen/LU>
 #include <cstdint>
 #include <memory>
 #include <vector>
@@ -91,6 +111,9 @@ struct NonlinearModelData {
   // nodes against the reduced model's). Magnitudes increasing, > 0; scales M × c, finite, >= 0.
   std::vector<double> correction_magnitudes;
   Eigen::MatrixXd correction_scales;
+  // The Petrov–Galerkin test basis Ψ [m/N per unit mode], 3N × n, finite (optional: empty is
+  // Galerkin, Ψ = B). The builder's is Ψ = K0⁻¹ B (below).
+  Eigen::MatrixXd test_modes;
 };
 
 // D (9 × n) of one element: vec(F − I) = D ξ for u = B ξ, row i + 3j = Σ_a ∇N_a[j] B(3 c_a + i, :)
@@ -111,8 +134,9 @@ class NonlinearReducedModel final : public TissueModel {
   int32_t num_elements() const { return static_cast<int32_t>(data_.weights.size()); }
   std::unique_ptr<TissueState> MakeState() const override;
   // The condensed stiffness at `node` from the reduced tangent of the state's last
-  // factorisation: (B_i K̂⁻¹ B_iᵀ)⁻¹, eigenvalues capped at max_local_stiffness (directions the
-  // modes do not move the node in). O(n²).
+  // factorisation: (B_i K̂⁻¹ B_iᵀ)⁻¹ (Petrov–Galerkin: of the symmetric part of B_i K̂⁻¹ Ψ_iᵀ),
+  // eigenvalues capped at max_local_stiffness (directions the modes do not move the node in).
+  // O(n²).
   Eigen::Matrix3d LocalStiffness(const TissueState& state, int32_t node) const override;
   // B (Bᵀ f_int) [N]: the internal forces' projection onto the modes (for orthonormal modes,
   // the part of the full model's internal forces the reduced model sees), elastic part.
@@ -120,9 +144,10 @@ class NonlinearReducedModel final : public TissueModel {
   // Elastic: Σ_ê w_ê V_ê W(F_ê).
   EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
 
-  // The reduced internal force Bᵀ f_int at ξ (n) with the state's Prony variables as if for a
-  // step of dt (dt <= 0: elastic), and the reduced tangent −∂/∂ξ of it (n × n) when `tangent`
-  // is given. For tests (finite differences) and the builder. Allocates.
+  bool petrov_galerkin() const { return data_.test_modes.size() > 0; }
+  // The reduced internal force Bᵀ f_int (Petrov–Galerkin: Ψᵀ f_int) at ξ (n) with the state's Prony
+  // variables as if for a step of dt (dt <= 0: elastic), and the reduced tangent −∂/∂ξ of it (n ×
+  // n) when `tangent` is given. For tests (finite differences) and the builder. Allocates.
   void ReducedForces(const TissueState& state, const Eigen::VectorXd& xi, double dt,
                      Eigen::VectorXd* force, Eigen::MatrixXd* tangent) const;
 
@@ -151,11 +176,17 @@ class NonlinearReducedModel final : public TissueModel {
   double CorrectionScale(Eigen::Index node, double magnitude) const;
   // T (9m × n) = blockdiag(w V ∂P/∂F) D at the gradients h.
   void TangentFactors(const double* h, double g, const double* offset, double* t) const;
+  // The maps the equations are tested with: Ψ and D̃ (Petrov–Galerkin), else B and D.
+  const Eigen::MatrixXd& TestModes() const {
+    return petrov_galerkin() ? data_.test_modes : data_.modes;
+  }
+  const Eigen::MatrixXd& TestMap() const { return petrov_galerkin() ? test_map_ : gradient_map_; }
 
   NonlinearModelData data_;
   Eigen::MatrixXd gradient_map_;   // D: 9m × n, rows 9ê..9ê+8 = D_ê
+  Eigen::MatrixXd test_map_;       // D̃: 9m × n from Ψ (Petrov–Galerkin), else empty
   Eigen::VectorXd scale_;          // m: w_ê V_ê [m³]
-  Eigen::MatrixXd gravity_modes_;  // n × 3: column a = Bᵀ (m e_a)
+  Eigen::MatrixXd gravity_modes_;  // n × 3: column a = Bᵀ (m e_a) (Petrov–Galerkin: Ψᵀ)
   std::vector<uint8_t> moves_;     // N: 1 when the modes move the node
   ModalField field_;
 };

@@ -93,4 +93,36 @@ size_t ChooseStiffness(const fem::FemModel& model, std::span<const mesh::Points>
   return best;
 }
 
+Eigen::MatrixXd PetrovGalerkinTestBasis(const fem::FemModel& model, const Eigen::MatrixXd& modes,
+                                        std::span<const int32_t> fixed,
+                                        fem::StaticWorkspace* workspace) {
+  if (modes.rows() != 3 * static_cast<Eigen::Index>(model.num_nodes())) {
+    throw std::invalid_argument("test basis: the modes are not 3N × n for the model");
+  }
+  fem::StaticWorkspace own;
+  if (workspace == nullptr) workspace = &own;
+  Eigen::MatrixXd psi = Eigen::MatrixXd::Zero(modes.rows(), modes.cols());
+  mesh::Points forces(3, model.num_nodes());
+  fem::StaticLoads loads;
+  loads.external_forces = &forces;
+  loads.fixed_nodes = fixed;
+  loads.reuse_factorisation = true;
+  for (Eigen::Index j = 0; j < modes.cols(); ++j) {
+    const double largest = modes.col(j).cwiseAbs().maxCoeff();
+    if (!(largest > 0.0) || !std::isfinite(largest)) continue;  // a zero mode tests nothing
+    const double scale = 1e-7 / largest;                        // [N per unit of the mode]
+    for (const double sign : {1.0, -1.0}) {
+      Eigen::Map<Eigen::VectorXd>(forces.data(), forces.size()) = sign * scale * modes.col(j);
+      auto state = model.MakeState();
+      if (!model.SolveStatic(loads, state.get(), workspace).converged) {
+        throw std::invalid_argument("test basis: mode " + std::to_string(j) +
+                                    "'s linear response did not converge");
+      }
+      const mesh::Points u = state->positions - model.rest_positions();
+      psi.col(j) += Eigen::Map<const Eigen::VectorXd>(u.data(), u.size()) * (sign / (2.0 * scale));
+    }
+  }
+  return psi;
+}
+
 }  // namespace somasim::models::reduced

@@ -47,4 +47,14 @@ size_t ChooseStiffness(const fem::FemModel& model, std::span<const mesh::Points>
                        const Eigen::MatrixXd& modes, std::span<const StaticCase> cases,
                        std::vector<double>* errors = nullptr);
 
+// The Petrov–Galerkin test basis Ψ = K0⁻¹ B (nonlinear_model.h) of `modes` (3N × n) on the
+// model's rest tangent with `fixed` nodes held (their rows of Ψ are 0): each mode as a tiny load
+// (0.1 µN at its largest node), central differences of ± the load (the material's quadratic term
+// cancels: K0 Ψ = B to ~1e-6), divided by the load's scale. 2n static solves on one factor (a
+// `workspace` kept across calls reuses it). Throws std::invalid_argument when a solve does not
+// converge.
+Eigen::MatrixXd PetrovGalerkinTestBasis(const fem::FemModel& model, const Eigen::MatrixXd& modes,
+                                        std::span<const int32_t> fixed,
+                                        fem::StaticWorkspace* workspace = nullptr);
+
 }  // namespace somasim::models::reduced

@@ -193,6 +193,25 @@ struct NonlinearFixture {
   reduced::ReducedModelMetadata metadata;
 };
 
+using Damage = std::pair<std::function<void(NonlinearFixture*)>, std::string>;
+
+// Each damage done to a copy of each fixture: refused, the message naming what is wrong; and
+// each fixture cut 100 bytes short: refused as truncated.
+void ExpectRefused(const std::vector<NonlinearFixture>& fixtures,
+                   const std::vector<Damage>& damages) {
+  for (const NonlinearFixture& f : fixtures) {
+    for (const auto& [damage, message] : damages) {
+      NonlinearFixture g = f;
+      damage(&g);
+      const std::string refusal = Refusal(g.Bytes(), nullptr);
+      EXPECT_NE(refusal.find(message), std::string::npos) << refusal;
+    }
+    const std::string bytes = f.Bytes();
+    EXPECT_NE(Refusal(bytes.substr(0, bytes.size() - 100), &f.mesh).find("truncated at byte"),
+              std::string::npos);
+  }
+}
+
 TEST(ReducedFile, TheNonlinearModelRoundTripsWithItsMaterialAndCubature) {
   const NonlinearFixture f;
   const LoadedReducedModel loaded = DecodeReducedModel(f.Bytes(), "nl.somared", &f.mesh);
@@ -243,7 +262,7 @@ TEST(ReducedFile, TheNonlinearModelsStaticCorrectionRoundTripsAndIsChecked) {
       DecodeReducedModel(NonlinearFixture().Bytes(), "nl.somared", &f.mesh).metadata.arrays_size(),
       6);
   // Each damaged copy is refused, naming what is wrong.
-  const std::vector<std::pair<std::function<void(NonlinearFixture*)>, std::string>> damages = {
+  const std::vector<Damage> damages = {
       {[dofs](NonlinearFixture* g) { g->data.corrections = Eigen::MatrixXd::Zero(dofs, 3); },
        "'corrections' is not 3 num_nodes × 3c"},  // 3 columns for 2 nodes
       {[](NonlinearFixture* g) {
@@ -269,16 +288,40 @@ TEST(ReducedFile, TheNonlinearModelsStaticCorrectionRoundTripsAndIsChecked) {
        },
        "a correction is not finite"},
   };
-  for (const auto& [damage, message] : damages) {
-    NonlinearFixture g = f;
-    damage(&g);
-    const std::string refusal = Refusal(g.Bytes(), nullptr);
-    EXPECT_NE(refusal.find(message), std::string::npos) << refusal;
-  }
-  // Truncated inside the corrections: refused.
-  const std::string bytes = f.Bytes();
-  EXPECT_NE(Refusal(bytes.substr(0, bytes.size() - 100), &f.mesh).find("truncated at byte"),
-            std::string::npos);
+  ExpectRefused({f}, damages);  // and truncated inside the corrections
+}
+
+// A Petrov–Galerkin model's test basis Ψ: the last array, with or without the correction.
+TEST(ReducedFile, ThePetrovGalerkinTestBasisRoundTripsAndIsChecked) {
+  NonlinearFixture f;
+  const Eigen::Index dofs = f.data.modes.rows();
+  f.data.test_modes = Eigen::MatrixXd::Random(dofs, f.data.modes.cols()) * 1e-2;
+  const LoadedReducedModel loaded = DecodeReducedModel(f.Bytes(), "nl.somared", &f.mesh);
+  ASSERT_NE(loaded.nonlinear, nullptr);
+  EXPECT_EQ(loaded.metadata.arrays_size(), 7);
+  EXPECT_EQ(loaded.metadata.arrays(6).name(), "test_modes");
+  EXPECT_EQ(loaded.nonlinear->data().test_modes, f.data.test_modes);
+  EXPECT_TRUE(loaded.nonlinear->petrov_galerkin());
+  NonlinearFixture both = f;
+  both.data.correction_nodes = {2, 5};
+  both.data.corrections = Eigen::MatrixXd::Random(dofs, 6) * 1e-3;
+  const LoadedReducedModel loaded_both = DecodeReducedModel(both.Bytes(), "nl.somared", &f.mesh);
+  ASSERT_NE(loaded_both.nonlinear, nullptr);
+  EXPECT_EQ(loaded_both.metadata.arrays_size(), 11);
+  EXPECT_EQ(loaded_both.nonlinear->data().test_modes, f.data.test_modes);
+  EXPECT_EQ(loaded_both.nonlinear->data().corrections, both.data.corrections);
+  // A Galerkin model has none.
+  EXPECT_FALSE(DecodeReducedModel(NonlinearFixture().Bytes(), "nl.somared", &f.mesh)
+                   .nonlinear->petrov_galerkin());
+  const std::vector<Damage> damages = {
+      {[dofs](NonlinearFixture* g) { g->data.test_modes = Eigen::MatrixXd::Zero(dofs, 2); },
+       "'test_modes' is not 3 num_nodes × n like 'modes'"},
+      {[dofs](NonlinearFixture* g) { g->data.test_modes = Eigen::MatrixXd::Zero(dofs - 3, 3); },
+       "'test_modes' is not 3 num_nodes × n like 'modes'"},
+      {[](NonlinearFixture* g) { g->data.test_modes(4, 1) = std::nan(""); },
+       "a test mode is not finite"},
+  };
+  ExpectRefused({f, both}, damages);
 }
 
 TEST(ReducedFile, RefusesABadNonlinearModelByName) {
