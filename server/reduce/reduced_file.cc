@@ -56,7 +56,7 @@ std::string EncodeArrays(reduced::ReducedModelMetadata metadata, const std::vect
     info->set_rows(a.rows);
     info->set_cols(a.cols);
     info->set_crc32(Crc(bytes, size));
-    body.append(bytes, size);
+    if (size > 0) body.append(bytes, size);  // an empty array may have no storage
   }
   std::string meta;
   metadata.SerializeToString(&meta);
@@ -375,7 +375,7 @@ LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::strin
       fail("array '" + a.name() + "' fails its checksum (at byte " + std::to_string(at) + ")");
     }
     std::vector<double> values(a.rows() * a.cols());
-    std::memcpy(values.data(), bytes.data() + at, size);
+    if (size > 0) std::memcpy(values.data(), bytes.data() + at, size);  // an empty one: no data()
     arrays.push_back(std::move(values));
     at += size;
   }
