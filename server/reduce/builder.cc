@@ -1,11 +1,13 @@
 #include "server/reduce/builder.h"
 
 #include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <set>
 #include <stdexcept>
 #include <utility>
@@ -240,6 +242,7 @@ NonlinearBuildReport BuildNonlinearModel(
     int32_t node = 0;
     size_t magnitude = 0;
     Eigen::Vector3d force, displacement;
+    size_t state = 0;  // index into states: the full solution
   };
   std::vector<Dent> dents;
   // The magnitudes of the region samples.
@@ -314,9 +317,9 @@ NonlinearBuildReport BuildNonlinearModel(
         }
         const mesh::Points u = state->positions - full.rest_positions();
         add(u);
+        dents.push_back({r, m, f * d, u.col(r), states.size()});
         states.push_back(u);
         ++out.region_solves;
-        dents.push_back({r, m, f * d, u.col(r)});
       }
     }
     report("region samples", done, plan.region_nodes.size());
@@ -409,12 +412,15 @@ NonlinearBuildReport BuildNonlinearModel(
     for (Eigen::Index k = 0; k < c; ++k) index_of[size_t(correction_nodes[size_t(k)])] = k;
     const Eigen::Index n = d.modes.cols();
     Eigen::VectorXd xi = Eigen::VectorXd::Zero(n);
+    // Each sample's reduced equilibrium (n; NaN where it did not converge), for the part in the
+    // modes below.
+    Eigen::MatrixXd equilibria(n, static_cast<Eigen::Index>(dents.size()));
+    equilibria.setConstant(std::numeric_limits<double>::quiet_NaN());
     for (size_t s_index = 0; s_index < dents.size(); ++s_index) {
       const Dent& dent = dents[s_index];
       const Eigen::Index k = index_of[size_t(dent.node)];
       if (k < 0) continue;
       if (dent.magnitude == 0) xi.setZero();  // a new direction: from rest
-      const Eigen::MatrixXd rows = d.modes.middleRows(3 * dent.node, 3);  // B_r: 3 × n
       const Eigen::VectorXd load = test.middleRows(3 * dent.node, 3).transpose() * dent.force;
       bool solved = false;
       for (int iteration = 0; iteration < 40; ++iteration) {
@@ -436,21 +442,109 @@ NonlinearBuildReport BuildNonlinearModel(
         }
         xi = trial;
       }
-      if (!solved) continue;
-      const Eigen::Vector3d reduced = rows * xi;
-      const Eigen::Vector3d linear =
-          d.corrections.block<3, 3>(3 * Eigen::Index(dent.node), 3 * k) * dent.force;
-      numerator(Eigen::Index(dent.magnitude), k) += (dent.displacement - reduced).dot(linear);
-      denominator(Eigen::Index(dent.magnitude), k) += linear.squaredNorm();
+      if (solved) equilibria.col(static_cast<Eigen::Index>(s_index)) = xi;
     }
-    d.correction_magnitudes = magnitudes;
-    d.correction_scales = Eigen::MatrixXd::Ones(magnitudes_count, c);
-    for (Eigen::Index m = 0; m < magnitudes_count; ++m) {
-      for (Eigen::Index k = 0; k < c; ++k) {
-        if (denominator(m, k) > 0.0) {
-          d.correction_scales(m, k) = std::clamp(numerator(m, k) / denominator(m, k), 0.0, 1.5);
+    const auto features = [](const Eigen::Vector3d& f) {
+      return Eigen::Vector4d(f(0), f(1), f(2), f.norm());
+    };
+    // κ from the dents the reduced equilibria leave (with the part in the modes, once fitted).
+    const auto fit_scales = [&] {
+      numerator.setZero();
+      denominator.setZero();
+      const Eigen::Index count = magnitudes_count;
+      const bool in_modes = d.correction_coefficients.size() > 0;
+      for (size_t s_index = 0; s_index < dents.size(); ++s_index) {
+        const Dent& dent = dents[s_index];
+        const Eigen::Index k = index_of[size_t(dent.node)];
+        const auto column = static_cast<Eigen::Index>(s_index);
+        if (k < 0 || !equilibria.col(column).allFinite()) continue;
+        Eigen::VectorXd coordinates = equilibria.col(column);
+        if (in_modes) {
+          coordinates += d.correction_coefficients.middleCols<4>(
+                             4 * (k * count + Eigen::Index(dent.magnitude))) *
+                         features(dent.force);
+        }
+        const Eigen::Vector3d reduced = d.modes.middleRows(3 * dent.node, 3) * coordinates;
+        const Eigen::Vector3d linear =
+            d.corrections.block<3, 3>(3 * Eigen::Index(dent.node), 3 * k) * dent.force;
+        numerator(Eigen::Index(dent.magnitude), k) += (dent.displacement - reduced).dot(linear);
+        denominator(Eigen::Index(dent.magnitude), k) += linear.squaredNorm();
+      }
+      d.correction_scales = Eigen::MatrixXd::Ones(magnitudes_count, c);
+      for (Eigen::Index m = 0; m < magnitudes_count; ++m) {
+        for (Eigen::Index k = 0; k < c; ++k) {
+          if (denominator(m, k) > 0.0) {
+            d.correction_scales(m, k) = std::clamp(numerator(m, k) / denominator(m, k), 0.0, 1.5);
+          }
         }
       }
+    };
+    d.correction_magnitudes = magnitudes;
+    fit_scales();
+    if (plan.correction_in_modes) {
+      // The part in the modes: per sample the offset t = (BᵀB)⁻¹ Bᵀ (u_full − κ R_p f) − ξ that
+      // B ξ + κ R_p f leaves in span(B), fitted per node and magnitude as G φ(f), φ = (f, |f|),
+      // over the node's directions by least squares (G = T Φᵀ (Φ Φᵀ)⁺). Affine in the direction:
+      // the offset along the normal (|f|) and its change with the tilt (f); where the directions
+      // span only a plane, as with two tilts, G sees the plane's part only.
+      // κ is then fitted again to the dents the fitted part leaves, and the part again to that κ
+      // (once: the second pass moves κ by a few per cent).
+      const Eigen::LDLT<Eigen::MatrixXd> gram(d.modes.transpose() * d.modes);
+      const auto fit_coefficients = [&] {
+        std::vector<Eigen::MatrixXd> tf(static_cast<size_t>(magnitudes_count * c),
+                                        Eigen::MatrixXd::Zero(n, 4));
+        std::vector<Eigen::Matrix4d> ff(tf.size(), Eigen::Matrix4d::Zero());
+        std::vector<Eigen::VectorXd> offsets(dents.size());
+        double field_norm = 0.0, before = 0.0, after = 0.0;
+        for (size_t s_index = 0; s_index < dents.size(); ++s_index) {
+          const Dent& dent = dents[s_index];
+          const Eigen::Index k = index_of[size_t(dent.node)];
+          const auto column = static_cast<Eigen::Index>(s_index);
+          if (k < 0 || !equilibria.col(column).allFinite()) continue;
+          const mesh::Points& u = states[dent.state];
+          const Eigen::Map<const Eigen::VectorXd> flat(u.data(), u.size());
+          const double kappa = d.correction_scales(Eigen::Index(dent.magnitude), k);
+          const Eigen::VectorXd rest_of =
+              flat - kappa * (d.corrections.middleCols<3>(3 * k) * dent.force);
+          offsets[s_index] = gram.solve(d.modes.transpose() * rest_of) - equilibria.col(column);
+          const size_t block = size_t(k * magnitudes_count) + dent.magnitude;
+          const Eigen::Vector4d phi = features(dent.force);
+          tf[block] += offsets[s_index] * phi.transpose();
+          ff[block] += phi * phi.transpose();
+          field_norm += flat.squaredNorm();
+        }
+        d.correction_coefficients = Eigen::MatrixXd::Zero(n, 4 * magnitudes_count * c);
+        for (size_t block = 0; block < tf.size(); ++block) {
+          const Eigen::SelfAdjointEigenSolver<Eigen::Matrix4d> eigen(ff[block]);
+          const Eigen::Vector4d& values = eigen.eigenvalues();  // ascending, >= 0
+          if (!(values(3) > 0.0)) continue;                     // no sample
+          Eigen::Vector4d inverse = Eigen::Vector4d::Zero();
+          for (int a = 0; a < 4; ++a) {
+            if (values(a) > 1e-9 * values(3)) inverse(a) = 1.0 / values(a);
+          }
+          d.correction_coefficients.middleCols<4>(4 * static_cast<Eigen::Index>(block)) =
+              tf[block] *
+              (eigen.eigenvectors() * inverse.asDiagonal() * eigen.eigenvectors().transpose());
+        }
+        for (size_t s_index = 0; s_index < dents.size(); ++s_index) {
+          if (offsets[s_index].size() == 0) continue;
+          const Dent& dent = dents[s_index];
+          const Eigen::Index k = index_of[size_t(dent.node)];
+          const Eigen::Index block = k * magnitudes_count + Eigen::Index(dent.magnitude);
+          before += (d.modes * offsets[s_index]).squaredNorm();
+          after +=
+              (d.modes * (offsets[s_index] - d.correction_coefficients.middleCols<4>(4 * block) *
+                                                 features(dent.force)))
+                  .squaredNorm();
+        }
+        if (field_norm > 0.0) {
+          out.in_span_error_before = std::sqrt(before / field_norm);
+          out.in_span_error_after = std::sqrt(after / field_norm);
+        }
+      };
+      fit_coefficients();
+      fit_scales();
+      fit_coefficients();
     }
     out.correction_scale_mean = d.correction_scales.rowwise().mean();
     report("correction", 1, 1);

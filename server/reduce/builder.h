@@ -67,6 +67,10 @@ struct SamplingPlan {
   // The nonlinear model's static correction at the region nodes (nonlinear_model.h): their
   // linear responses beyond the modes, for point forces there.
   bool static_correction = true;
+  // ... and its part in the modes: the reduced equilibrium's offset from the full model's
+  // in-span field under the region samples' forces, fitted per node and magnitude, linear in
+  // the force (nonlinear_model.h's correction_coefficients). Needs static_correction.
+  bool correction_in_modes = true;
   // The nonlinear model's projection (nonlinear_model.h): Galerkin (Ψ = B, the default: an
   // energy's stationary point, robust under any load) or Petrov–Galerkin with Ψ = K0⁻¹ B (the
   // L2-best field in the linear range; docs/reduced.md compares them on the liver).
@@ -104,7 +108,10 @@ struct NonlinearBuildReport {
   models::reduced::Cubature cubature;
   Eigen::Index correction_nodes = 0;      // nodes with a static correction
   Eigen::VectorXd correction_scale_mean;  // its scale κ per magnitude, the nodes' mean
-  double seconds = 0.0;                   // wall time of this part of the build
+  // Its part in the modes, on the region samples: the in-span field error of the corrected
+  // model (relative to |u|, over all samples) without it and with the fitted G_p.
+  double in_span_error_before = 0.0, in_span_error_after = 0.0;
+  double seconds = 0.0;  // wall time of this part of the build
 };
 
 // Throws std::invalid_argument naming what is wrong with the plan (a point out of range, held or

@@ -113,6 +113,14 @@ void CheckMesh(const mesh::TetMesh& mesh, const reduced::ReducedModelMetadata& m
   }
 }
 
+// The index of the array named `name` in m, or -1.
+int ArrayIndex(const reduced::ReducedModelMetadata& m, const std::string& name) {
+  for (int k = 0; k < m.arrays_size(); ++k) {
+    if (m.arrays(k).name() == name) return k;
+  }
+  return -1;
+}
+
 // The nonlinear model from checked arrays (rest, masses and modes' shapes already checked).
 template <typename Fail>
 std::unique_ptr<models::reduced::NonlinearReducedModel> DecodeNonlinear(
@@ -160,7 +168,7 @@ std::unique_ptr<models::reduced::NonlinearReducedModel> DecodeNonlinear(
     fail("hyperelastic: unknown law '" + h.law() + "'");
   }
   for (const reduced::PronyInfo& p : m.prony()) data.prony.push_back({p.gamma(), p.tau_s()});
-  if (m.arrays_size() >= 10) {  // the static correction
+  if (ArrayIndex(m, "correction_nodes") == 6) {  // the static correction
     const uint64_t c = m.arrays(6).rows();
     if (m.arrays(6).cols() != 1) fail("'correction_nodes' is not c × 1");
     if (m.arrays(7).rows() != 3 * m.num_nodes() || m.arrays(7).cols() != 3 * c) {
@@ -184,8 +192,16 @@ std::unique_ptr<models::reduced::NonlinearReducedModel> DecodeNonlinear(
         Eigen::Map<const Eigen::MatrixXd>(arrays[9].data(), static_cast<Eigen::Index>(magnitudes),
                                           static_cast<Eigen::Index>(magnitudes > 0 ? c : 0));
   }
-  if (m.arrays_size() == 7 || m.arrays_size() == 11) {  // the test basis, last
-    const int k = m.arrays_size() - 1;
+  if (const int k = ArrayIndex(m, "correction_coefficients"); k > 0) {  // after the four
+    const uint64_t n = m.arrays(2).cols(), c = m.arrays(6).rows(), magnitudes = m.arrays(8).rows();
+    if (m.arrays(k).rows() != n || m.arrays(k).cols() != 4 * magnitudes * c) {
+      fail("'correction_coefficients' is not n × 4Mc (n = " + std::to_string(n) +
+           ", M = " + std::to_string(magnitudes) + ", c = " + std::to_string(c) + ")");
+    }
+    data.correction_coefficients = Eigen::Map<const Eigen::MatrixXd>(
+        arrays[static_cast<size_t>(k)].data(), ek, static_cast<Eigen::Index>(4 * magnitudes * c));
+  }
+  if (const int k = ArrayIndex(m, "test_modes"); k > 0) {  // the test basis, last
     if (m.arrays(k).rows() != 3 * m.num_nodes() || m.arrays(k).cols() != m.arrays(2).cols()) {
       fail("'test_modes' is not 3 num_nodes × n like 'modes'");
     }
@@ -285,6 +301,11 @@ std::string EncodeReducedModel(reduced::ReducedModelMetadata metadata,
     arrays.push_back({"correction_scales", data.correction_scales.data(),
                       static_cast<size_t>(data.correction_scales.rows()),
                       static_cast<size_t>(data.correction_scales.cols())});
+    if (data.correction_coefficients.size() > 0) {
+      arrays.push_back({"correction_coefficients", data.correction_coefficients.data(),
+                        static_cast<size_t>(data.correction_coefficients.rows()),
+                        static_cast<size_t>(data.correction_coefficients.cols())});
+    }
   }
   if (data.test_modes.size() > 0) {
     arrays.push_back({"test_modes", data.test_modes.data(),
@@ -345,13 +366,20 @@ LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::strin
       nonlinear ? std::vector<std::string>{"rest", "masses", "modes", "tets", "weights", "elements"}
                 : std::vector<std::string>{
                       "rest", "masses", "modes", "stiffness_modes", "reduced_stiffness", "creep"};
-  // A nonlinear model may carry its static correction (four arrays more) and then its
-  // Petrov–Galerkin test basis (one more).
-  if (nonlinear && m.arrays_size() >= 10) {
-    names.insert(names.end(),
-                 {"correction_nodes", "corrections", "correction_magnitudes", "correction_scales"});
+  // A nonlinear model may carry its static correction (four arrays more, then optionally its
+  // part in the modes) and then its Petrov–Galerkin test basis (one more), in that order.
+  if (nonlinear) {
+    const auto named = [&m, &names](const char* array) {
+      const auto k = static_cast<int>(names.size());
+      return k < m.arrays_size() && m.arrays(k).name() == array;
+    };
+    if (named("correction_nodes")) {
+      names.insert(names.end(), {"correction_nodes", "corrections", "correction_magnitudes",
+                                 "correction_scales"});
+      if (named("correction_coefficients")) names.push_back("correction_coefficients");
+    }
+    if (named("test_modes")) names.push_back("test_modes");
   }
-  if (nonlinear && (m.arrays_size() == 7 || m.arrays_size() == 11)) names.push_back("test_modes");
   if (m.arrays_size() != static_cast<int>(names.size())) {
     fail("lists " + std::to_string(m.arrays_size()) + " arrays, not " +
          std::to_string(names.size()));

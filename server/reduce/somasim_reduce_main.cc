@@ -386,6 +386,9 @@ int RunMain(int argc, char** argv) {
       nonlinear_summary["correction_scale_mean"] =
           std::vector<double>(nl.correction_scale_mean.data(),
                               nl.correction_scale_mean.data() + nl.correction_scale_mean.size());
+      nonlinear_summary["correction_in_modes"] = nl.data.correction_coefficients.size() > 0;
+      nonlinear_summary["in_span_error_before"] = nl.in_span_error_before;
+      nonlinear_summary["in_span_error_after"] = nl.in_span_error_after;
       nonlinear_summary["region_unconverged"] = nl.unconverged;
       nonlinear_summary["build_seconds"] = nl.seconds;
     }

@@ -39,6 +39,7 @@ class NonlinearState final : public ModalState {
   // whether δ and δ_prev are non-zero (while neither is, nothing touches the 3N vectors).
   Eigen::MatrixXd corr_elastic, corr_history, good_corr_elastic, good_corr_history;
   Eigen::VectorXd corr_field, corr_field_prev, good_corr_field, good_corr_field_prev;
+  Eigen::VectorXd corr_xi;  // n: the correction's part in the modes, δξ = Σ_p G_p e_p (scratch)
   bool corr_nonzero = false, corr_prev_nonzero = false;
   bool good_corr_nonzero = false, good_corr_prev_nonzero = false;
   bool corr_active() const { return corr_nonzero || corr_prev_nonzero; }
@@ -233,6 +234,15 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
   }
   Require(data.correction_scales.allFinite() && (data.correction_scales.array() >= 0.0).all(),
           "a correction scale is not finite and >= 0");
+  Require(data.correction_coefficients.size() == 0 ||
+              (data.correction_coefficients.rows() == data.modes.cols() &&
+               data.correction_coefficients.cols() == 4 * magnitudes * c && magnitudes > 0),
+          "correction_coefficients must be n × 4Mc for n = " + std::to_string(data.modes.cols()) +
+              " modes, M = " + std::to_string(magnitudes) + " magnitudes and c = " +
+              std::to_string(c) + " nodes (and needs the magnitudes), got " +
+              std::to_string(data.correction_coefficients.rows()) + " × " +
+              std::to_string(data.correction_coefficients.cols()));
+  Require(data.correction_coefficients.allFinite(), "a correction coefficient is not finite");
   {
     std::vector<uint8_t> seen(static_cast<size_t>(nodes), 0);
     for (const int32_t p : data.correction_nodes) {
@@ -340,6 +350,7 @@ std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
   state->good_corr_elastic = state->corr_elastic;
   state->good_corr_history = state->corr_history;
   state->corr_field = Eigen::VectorXd::Zero(c > 0 ? data_.modes.rows() : 0);
+  state->corr_xi = Eigen::VectorXd::Zero(data_.correction_coefficients.size() > 0 ? n : 0);
   state->corr_field_prev = state->corr_field;
   state->good_corr_field = state->corr_field;
   state->good_corr_field_prev = state->corr_field;
@@ -574,6 +585,8 @@ void NonlinearReducedModel::Correct(const StepInputs& inputs, TissueState* base)
   }
   s->corr_prev_nonzero = s->corr_nonzero;
   s->corr_nonzero = false;
+  const bool in_modes = s->corr_xi.size() > 0;
+  if (in_modes) s->corr_xi.setZero();
   for (Eigen::Index k = 0; k < static_cast<Eigen::Index>(data_.correction_nodes.size()); ++k) {
     const int32_t p = data_.correction_nodes[static_cast<size_t>(k)];
     Eigen::Vector3d f = Eigen::Vector3d::Zero();
@@ -599,9 +612,36 @@ void NonlinearReducedModel::Correct(const StepInputs& inputs, TissueState* base)
     if (magnitude > 1e-9) {  // [N]: below it the dent is ~1e-11 m
       const double kappa = CorrectionScale(k, magnitude);
       s->corr_field.noalias() += data_.corrections.middleCols<3>(3 * k) * (kappa * e);
+      if (in_modes) AddCoefficientCorrection(k, e, &s->corr_xi);
       s->corr_nonzero = true;
     }
   }
+  if (in_modes && s->corr_nonzero) s->corr_field.noalias() += data_.modes * s->corr_xi;
+}
+
+void NonlinearReducedModel::AddCoefficientCorrection(Eigen::Index node, const Eigen::Vector3d& e,
+                                                     Eigen::VectorXd* xi) const {
+  // G_p(|e|) φ(e), φ = (e, |e|), G_p piecewise linear through (0, 0) and (f_m, G_{p,m}), held
+  // beyond the last.
+  const std::vector<double>& f = data_.correction_magnitudes;
+  const auto count = static_cast<Eigen::Index>(f.size());
+  const double magnitude = e.norm();
+  const Eigen::Vector4d phi(e(0), e(1), e(2), magnitude);
+  const auto block = [&](Eigen::Index m) {
+    return data_.correction_coefficients.middleCols<4>(4 * (node * count + m));
+  };
+  double f0 = 0.0;
+  for (Eigen::Index m = 0; m < count; ++m) {
+    const double f1 = f[static_cast<size_t>(m)];
+    if (magnitude <= f1) {
+      const double w = (magnitude - f0) / (f1 - f0);  // f1 > f0 >= 0
+      xi->noalias() += block(m) * (w * phi);
+      if (m > 0) xi->noalias() += block(m - 1) * ((1.0 - w) * phi);
+      return;
+    }
+    f0 = f1;
+  }
+  xi->noalias() += block(count - 1) * phi;
 }
 
 void NonlinearReducedModel::ReducedForces(const TissueState& state, const Eigen::VectorXd& xi,

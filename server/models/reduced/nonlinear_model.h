@@ -45,6 +45,17 @@
 // acts on external forces only; its amplitude follows the material's stiffening through a
 // calibrated scale κ_p(|e|) (below) (a grasp's or probe's spring is not corrected, nor is
 // LocalStiffness), and costs one 3N pass per loaded correction node per step.
+// Under large forces the reduced equilibrium itself drifts from the full one inside span(B) —
+// on the liver under a held 0.7 N (long-term ~2 N elastic) the field's in-span error is 17 %
+// against a 3 % basis floor, while the out-of-span part is at the floor. (Likely the volume: the
+// full field's projection onto the modes changes the elements' volumes 1.4× as much as the
+// full field does — combinations of nearly isochoric large-strain snapshots are not isochoric —
+// and with the near-incompressible material, K ≈ 50 G, Galerkin trades the soft motion's
+// accuracy for volume.)
+// The correction then also carries the offset in the modes, B G_p(|e|) (e, |e|) (fitted by the
+// builder per node and magnitude, affine in the force's direction; one more n-vector and one
+// 3N × n pass per step while a correction node is loaded). ξ itself (the dynamics, the haptic
+// stiffness) is the reduced equilibrium's; the field shown and reported is corrected.
 //
 // Petrov–Galerkin (optional: a scene's `nonlinear_projection: PETROV_GALERKIN`; docs/reduced.md
 // compares it with Galerkin on the liver): the equations are tested with Ψ instead of B,
@@ -111,6 +122,14 @@ struct NonlinearModelData {
   // nodes against the reduced model's). Magnitudes increasing, > 0; scales M × c, finite, >= 0.
   std::vector<double> correction_magnitudes;
   Eigen::MatrixXd correction_scales;
+  // The correction's part in the modes (optional; needs the magnitudes): the reduced
+  // equilibrium's systematic offset from the full model under large forces at node p, in the
+  // modes' coordinates, affine in the force's direction: δξ_p = G_p(|e|) φ(e), φ(e) = (e, |e|)
+  // (4), with G_p piecewise linear in |e| through (0, 0) and (correction_magnitudes[m], G_{p,m}),
+  // held beyond the last; the field gets B δξ_p. The n × 4 blocks G_{p,m} [1/N] side by side,
+  // node-major: columns 4 (p M + m) .. +3 (n × 4Mc, finite). The builder fits them on its own
+  // training solves (builder.h).
+  Eigen::MatrixXd correction_coefficients;
   // The Petrov–Galerkin test basis Ψ [m/N per unit mode], 3N × n, finite (optional: empty is
   // Galerkin, Ψ = B). The builder's is Ψ = K0⁻¹ B (below).
   Eigen::MatrixXd test_modes;
@@ -174,6 +193,9 @@ class NonlinearReducedModel final : public TissueModel {
   void Correct(const StepInputs& inputs, TissueState* state) const;
   // κ of correction node `node` (index into correction_nodes) at |e| = magnitude [N].
   double CorrectionScale(Eigen::Index node, double magnitude) const;
+  // Adds G_p(|e|) (e, |e|) of correction node `node` to xi (n).
+  void AddCoefficientCorrection(Eigen::Index node, const Eigen::Vector3d& e,
+                                Eigen::VectorXd* xi) const;
   // T (9m × n) = blockdiag(w V ∂P/∂F) D at the gradients h.
   void TangentFactors(const double* h, double g, const double* offset, double* t) const;
   // The maps the equations are tested with: Ψ and D̃ (Petrov–Galerkin), else B and D.

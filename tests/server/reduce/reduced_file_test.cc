@@ -324,6 +324,38 @@ TEST(ReducedFile, ThePetrovGalerkinTestBasisRoundTripsAndIsChecked) {
   ExpectRefused({f, both}, damages);
 }
 
+// The correction's part in the modes: after the correction's four arrays, before the test basis.
+TEST(ReducedFile, TheCorrectionsPartInTheModesRoundTripsAndIsChecked) {
+  NonlinearFixture f;
+  const Eigen::Index dofs = f.data.modes.rows(), n = f.data.modes.cols();
+  f.data.correction_nodes = {2, 5};
+  f.data.corrections = Eigen::MatrixXd::Random(dofs, 6) * 1e-3;
+  f.data.correction_magnitudes = {0.1, 0.5};
+  f.data.correction_scales = Eigen::MatrixXd::Constant(2, 2, 0.75);
+  f.data.correction_coefficients = Eigen::MatrixXd::Random(n, 16) * 1e-2;  // n × 4 M c
+  NonlinearFixture all = f;
+  all.data.test_modes = Eigen::MatrixXd::Random(dofs, n) * 1e-2;
+  for (const NonlinearFixture* g : {&f, &all}) {
+    const LoadedReducedModel loaded = DecodeReducedModel(g->Bytes(), "nl.somared", &g->mesh);
+    ASSERT_NE(loaded.nonlinear, nullptr);
+    EXPECT_EQ(loaded.metadata.arrays_size(), g == &f ? 11 : 12);
+    EXPECT_EQ(loaded.metadata.arrays(10).name(), "correction_coefficients");
+    EXPECT_EQ(loaded.nonlinear->data().correction_coefficients, f.data.correction_coefficients);
+    EXPECT_EQ(loaded.nonlinear->data().test_modes, g->data.test_modes);
+  }
+  const std::vector<Damage> damages = {
+      {[n](NonlinearFixture* g) { g->data.correction_coefficients = Eigen::MatrixXd::Zero(n, 12); },
+       "'correction_coefficients' is not n × 4Mc"},
+      {[n](NonlinearFixture* g) {
+         g->data.correction_coefficients = Eigen::MatrixXd::Zero(n + 1, 16);
+       },
+       "'correction_coefficients' is not n × 4Mc"},
+      {[](NonlinearFixture* g) { g->data.correction_coefficients(1, 7) = std::nan(""); },
+       "a correction coefficient is not finite"},
+  };
+  ExpectRefused({f, all}, damages);
+}
+
 TEST(ReducedFile, RefusesABadNonlinearModelByName) {
   const auto refused = [](const NonlinearFixture& g) { return Refusal(g.Bytes(), nullptr); };
   NonlinearFixture g;

@@ -575,6 +575,9 @@ TEST(NonlinearReducedModel, StepsAllocateNothing) {
     const int32_t tip = beam.Node(0.06, 0.02, 0.02);
     data.correction_nodes = {tip};  // the static correction's path too (values immaterial here)
     data.corrections = 1e-3 * Eigen::MatrixXd::Ones(data.modes.rows(), 3);
+    data.correction_magnitudes = {0.01, 0.05};
+    data.correction_scales = Eigen::MatrixXd::Ones(2, 1);
+    data.correction_coefficients = 1e-3 * Eigen::MatrixXd::Ones(data.modes.cols(), 8);
     auto model = NonlinearReducedModel::Create(data);
     auto state = model->MakeState();
     mesh::Points forces = mesh::Points::Zero(3, beam.model->num_nodes());
@@ -705,6 +708,66 @@ TEST(NonlinearReducedModel, TheStaticCorrectionGivesTheFullResponseToAPointForce
   EXPECT_LT((a->positions - b->positions).norm(), 1e-12);
 }
 
+// The correction's part in the modes: node p's field gains B G_p(|e|) (e, |e|), G_p piecewise
+// linear in |e| through (0, 0) and the blocks given at the magnitudes, held beyond the last; ξ (the
+// reduced equilibrium) is untouched, and so is a force at a node without a correction.
+TEST(NonlinearReducedModel, TheCorrectionsPartInTheModesAddsBGTimesTheForceAndItsMagnitude) {
+  const Beam beam;
+  const Eigen::MatrixXd modes = beam.RandomModes(6, 7);
+  const int32_t tip = beam.Node(0.06, 0.02, 0.02), other = beam.Node(0.06, 0.0, 0.0);
+  NonlinearModelData data = beam.Data(modes);
+  data.prony.clear();  // elastic: the effective force is the force
+  data.correction_nodes = {other, tip};
+  data.corrections = 1e-3 * Eigen::MatrixXd::Ones(modes.rows(), 6);
+  data.correction_magnitudes = {1e-4, 3e-4};
+  data.correction_scales = Eigen::MatrixXd::Constant(2, 2, 0.8);
+  const auto plain = NonlinearReducedModel::Create(data);
+  // Blocks (n × 4 each, node-major): the tip's at 0.1 mN and 0.3 mN; the other node's zero.
+  const Eigen::MatrixXd g1 = 20.0 * Eigen::MatrixXd::Random(6, 4);
+  const Eigen::MatrixXd g2 = 50.0 * Eigen::MatrixXd::Random(6, 4);
+  data.correction_coefficients = Eigen::MatrixXd::Zero(6, 16);
+  data.correction_coefficients.middleCols<4>(8) = g1;
+  data.correction_coefficients.middleCols<4>(12) = g2;
+  const auto corrected = NonlinearReducedModel::Create(data);
+  mesh::Points forces = mesh::Points::Zero(3, beam.model->num_nodes());
+  StepInputs inputs;
+  inputs.dt = 0.25;
+  inputs.external_forces = &forces;
+  const Vector3d direction = Vector3d(0.0, 0.6, -0.8);
+  for (const double magnitude : {0.5e-4, 1e-4, 2e-4, 3e-4, 6e-4}) {
+    SCOPED_TRACE(magnitude);
+    forces.setZero();
+    forces.col(tip) = magnitude * direction;
+    auto a = plain->MakeState();
+    auto b = corrected->MakeState();
+    ASSERT_EQ(plain->Step(inputs, a.get()), StepStatus::kOk);
+    ASSERT_EQ(corrected->Step(inputs, b.get()), StepStatus::kOk);
+    Eigen::MatrixXd g;  // G(|e|) by hand
+    if (magnitude <= 1e-4) {
+      g = (magnitude / 1e-4) * g1;
+    } else if (magnitude <= 3e-4) {
+      const double w = (magnitude - 1e-4) / 2e-4;
+      g = (1.0 - w) * g1 + w * g2;
+    } else {
+      g = g2;
+    }
+    const Eigen::Vector3d e = forces.col(tip);
+    const Eigen::VectorXd expected = modes * (g * Eigen::Vector4d(e(0), e(1), e(2), e.norm()));
+    const mesh::Points shift = b->positions - a->positions;
+    EXPECT_LT((Eigen::Map<const Eigen::VectorXd>(shift.data(), shift.size()) - expected).norm(),
+              1e-9 * expected.norm());
+    EXPECT_GT(expected.norm(), 0.0);
+    EXPECT_LT((corrected->Coordinates(*b) - plain->Coordinates(*a)).norm(), 1e-12);
+  }
+  forces.setZero();
+  forces.col(other) = Vector3d(0.0, 0.0, -2e-4);  // its blocks are zero
+  auto a = plain->MakeState();
+  auto b = corrected->MakeState();
+  ASSERT_EQ(plain->Step(inputs, a.get()), StepStatus::kOk);
+  ASSERT_EQ(corrected->Step(inputs, b.get()), StepStatus::kOk);
+  EXPECT_LT((b->positions - a->positions).norm(), 1e-15);
+}
+
 TEST(NonlinearReducedModel, RefusesBadDataByName) {
   const Beam beam;
   const NonlinearModelData good = beam.Data(beam.CompleteBasis());
@@ -764,6 +827,33 @@ TEST(NonlinearReducedModel, RefusesBadDataByName) {
         d->corrections(5, 1) = std::nan("");
       },
       "a correction is not finite");
+  const auto with_correction = [](NonlinearModelData* d) {
+    d->correction_nodes = {3};
+    d->corrections = Eigen::MatrixXd::Zero(d->modes.rows(), 3);
+    d->correction_magnitudes = {0.1, 0.5};
+    d->correction_scales = Eigen::MatrixXd::Ones(2, 1);
+  };
+  refused(
+      [&](NonlinearModelData* d) {
+        with_correction(d);
+        d->correction_coefficients = Eigen::MatrixXd::Zero(d->modes.cols(), 6);
+      },
+      "correction_coefficients must be n × 4Mc");
+  refused(
+      [&](NonlinearModelData* d) {
+        with_correction(d);
+        d->correction_magnitudes.clear();
+        d->correction_scales.resize(0, 0);
+        d->correction_coefficients = Eigen::MatrixXd::Zero(d->modes.cols(), 8);
+      },
+      "needs the magnitudes");
+  refused(
+      [&](NonlinearModelData* d) {
+        with_correction(d);
+        d->correction_coefficients = Eigen::MatrixXd::Zero(d->modes.cols(), 8);
+        d->correction_coefficients(2, 4) = std::nan("");
+      },
+      "a correction coefficient is not finite");
 }
 
 }  // namespace
