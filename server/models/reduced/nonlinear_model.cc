@@ -2,6 +2,7 @@
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/LU>
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
@@ -33,6 +34,9 @@ class NonlinearState final : public ModalState {
   Eigen::VectorXd external, internal, residual, delta, spring_rhs, trial;  // n
   mutable Eigen::MatrixXd local;  // n × 3: LocalStiffness's K̂⁻¹ B_iᵀ (or K̂⁻¹ Ψ_iᵀ)
   double factor_springs = 0.0;    // the springs the factor holds (a signature; 0: none)
+  // The largest load the tissue has carried, |r|'s units (|Ψᵀ f_ext| + |springs' part|): Newton's
+  // floor (a released tissue's recovery has no load to be relative to).
+  double load_scale = 0.0;
   // The static correction (c correction nodes): each node's effective force e of the last
   // step and its QLV variables [N] (3 × c, 3 × c·terms, term-minor), their good copies; the
   // field it adds, δ = Σ_p R_p e_p, and the last step's (3N [m]), with their good copies;
@@ -402,6 +406,11 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
   // The predictor: the last step's change again (a smooth load history at 1 kHz then starts
   // Newton next to the answer), when the step is as long as the last one and its residual is
   // the smaller.
+  // Converged at |r| <= tol × max(|Ψᵀ f_ext| + |Ψᵀ f_int| (+ springs), the largest load of a
+  // converged step so far): with no load at all (a release, the tissue recovering) the first
+  // alone cannot be met but in rounding, and each step would run to its limit.
+  const double applied = s->external.norm() + (springs ? s->spring_rhs.norm() : 0.0);
+  const double residual_floor = data_.newton_tolerance * s->load_scale;
   const bool extrapolate = s->dt == inputs.dt;
   s->trial = s->xi + (s->xi - s->xi_prev);
   s->xi_prev = s->xi;
@@ -467,7 +476,7 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
   bool refresh = false, fresh = false;
   int iterations = 0;
   while (ok) {
-    if (norm <= data_.newton_tolerance * scale || norm == 0.0) {
+    if (norm <= std::max(data_.newton_tolerance * scale, residual_floor) || norm == 0.0) {
       converged = true;
       break;
     }
@@ -486,7 +495,10 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
     while (true) {
       s->trial = s->xi + alpha * s->delta;
       const bool trial_ok = evaluate(s->trial, &trial_norm);
-      if (trial_ok && (trial_norm < norm || trial_norm <= data_.newton_tolerance * scale)) break;
+      if (trial_ok && (trial_norm < norm ||
+                       trial_norm <= std::max(data_.newton_tolerance * scale, residual_floor))) {
+        break;
+      }
       if (!fresh) {  // a stale factor's direction: refresh it at ξ and start again
         double again = 0.0;
         ok = evaluate(s->xi, &again) && refactor(true);
@@ -518,7 +530,11 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
     s->Rebuild();
     return;
   }
-  if (!converged) ++s->counters.solver_unconverged;
+  if (converged) {
+    s->load_scale = std::max(s->load_scale, applied);
+  } else {
+    ++s->counters.solver_unconverged;
+  }
   // The Prony variables advance with the accepted elastic stresses S^e = F⁻¹ P^e.
   if (!data_.prony.empty()) {
     const size_t terms = data_.prony.size();

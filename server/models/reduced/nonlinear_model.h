@@ -107,8 +107,9 @@ struct NonlinearModelData {
   std::vector<fem::PronyTerm> prony;  // QLV as in FemParameters::prony; empty: elastic
   double penalty_stiffness = 1e5;     // [N/m], > 0 (as KlModelData)
   double max_local_stiffness = 1e4;   // [N/m], > 0 (as KlModelData)
-  // Newton stops at |r| <= newton_tolerance × (|Bᵀ f_ext| + |Bᵀ f_int|) (> 0) or after
-  // max_newton_iterations (>= 1), accepting the last iterate (counted as unconverged).
+  // Newton stops at |r| <= newton_tolerance × max(|Bᵀ f_ext| + |Bᵀ f_int|, the largest |Bᵀ f_ext|
+  // the tissue has carried) (> 0) or after max_newton_iterations (>= 1), accepting the last
+  // iterate (counted as unconverged).
   double newton_tolerance = 1e-6;
   int max_newton_iterations = 30;
   // The static correction (above; optional): its nodes (c, distinct, in [0, N)) and R
