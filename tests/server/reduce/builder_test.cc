@@ -10,6 +10,7 @@
 #include <cstdio>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "common/mesh_gen/structured_meshes.h"
@@ -135,21 +136,31 @@ TEST(ReduceBuilder, ChoosesTheTangentWithTheLeastError) {
 // normal and held: the full model's creep) within 1 % over the whole history (somasim-reduce
 // --evaluate's measure) — with either projection (Galerkin at its 1 % cubature). The in-process
 // counterpart of the kidney program test, small enough for the sanitizer build.
+// The nonlinear builds' plan on the beam: the loaded corner (returned) as the KL plan's one point
+// (its normal, one force, creep for `creep` s) and, with an edge node, the region nodes: normal
+// and `tilts` tilts at `forces`; 12 modes.
+int32_t NonlinearPlan(Beam* beam, double force, double creep, int tilts,
+                      std::vector<double> forces) {
+  const int32_t corner = beam->Node(0.12, 0.03, 0.03);
+  SamplingPlan& plan = beam->plan;
+  plan.points = {corner};
+  plan.directions = 1;
+  plan.forces = {force};
+  plan.creep_duration = creep;
+  plan.creep_interval = 0.25;
+  plan.region_nodes = {corner, beam->Node(0.12, 0.0, 0.03)};
+  plan.tilts = tilts;
+  plan.nonlinear_forces = std::move(forces);
+  plan.nonlinear_pod.max_modes = 12;
+  plan.nonlinear_pod.energy_fraction = 1.0;
+  return corner;
+}
+
 TEST(ReduceBuilder, TheNonlinearModelReproducesATrainedLoadThroughItsCreep) {
   for (const bool petrov : {true, false}) {
     SCOPED_TRACE(petrov ? "Petrov-Galerkin" : "Galerkin");
     Beam beam(FemKind::kHyperelastic, {{0.3, 0.5}});
-    const int32_t corner = beam.Node(0.12, 0.03, 0.03);
-    beam.plan.points = {corner};
-    beam.plan.directions = 1;
-    beam.plan.forces = {0.01};
-    beam.plan.creep_duration = 2.0;
-    beam.plan.creep_interval = 0.25;
-    beam.plan.region_nodes = {corner, beam.Node(0.12, 0.0, 0.03)};
-    beam.plan.tilts = 2;
-    beam.plan.nonlinear_forces = {0.005, 0.01, 0.02};
-    beam.plan.nonlinear_pod.max_modes = 12;
-    beam.plan.nonlinear_pod.energy_fraction = 1.0;
+    const int32_t corner = NonlinearPlan(&beam, 0.01, 2.0, 2, {0.005, 0.01, 0.02});
     beam.plan.petrov_galerkin = petrov;
     beam.plan.cubature.tolerance = petrov ? 0.001 : 0.01;  // as somasim-reduce sets them
     const BuildReport kl = BuildKlModel(*beam.model, beam.mesh, beam.plan);
@@ -229,17 +240,7 @@ TEST(ReduceBuilder, TheNonlinearModelReproducesATrainedLoadThroughItsCreep) {
 // with it than without.
 TEST(ReduceBuilder, TheCorrectionsPartInTheModesBringsAHeldOutLoadCloser) {
   Beam beam(FemKind::kHyperelastic);
-  const int32_t corner = beam.Node(0.12, 0.03, 0.03);
-  beam.plan.points = {corner};
-  beam.plan.directions = 1;
-  beam.plan.forces = {0.02};
-  beam.plan.creep_duration = 0.5;
-  beam.plan.creep_interval = 0.25;
-  beam.plan.region_nodes = {corner, beam.Node(0.12, 0.0, 0.03)};
-  beam.plan.tilts = 4;
-  beam.plan.nonlinear_forces = {0.01, 0.03, 0.06};
-  beam.plan.nonlinear_pod.max_modes = 12;
-  beam.plan.nonlinear_pod.energy_fraction = 1.0;
+  const int32_t corner = NonlinearPlan(&beam, 0.02, 0.5, 4, {0.01, 0.03, 0.06});
   const BuildReport kl = BuildKlModel(*beam.model, beam.mesh, beam.plan);
   const NonlinearBuildReport r = BuildNonlinearModel(*beam.model, beam.mesh, beam.plan, kl);
   ASSERT_EQ(r.unconverged, 0);
