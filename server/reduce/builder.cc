@@ -444,9 +444,7 @@ NonlinearBuildReport BuildNonlinearModel(
       }
       if (solved) equilibria.col(static_cast<Eigen::Index>(s_index)) = xi;
     }
-    const auto features = [](const Eigen::Vector3d& f) {
-      return Eigen::Vector4d(f(0), f(1), f(2), f.norm());
-    };
+    const auto features = models::reduced::CorrectionFeatures;
     // κ from the dents the reduced equilibria leave (with the part in the modes, once fitted).
     const auto fit_scales = [&] {
       numerator.setZero();

@@ -68,8 +68,9 @@ struct SamplingPlan {
   // linear responses beyond the modes, for point forces there.
   bool static_correction = true;
   // ... and its part in the modes: the reduced equilibrium's offset from the full model's
-  // in-span field under the region samples' forces, fitted per node and magnitude, linear in
-  // the force (nonlinear_model.h's correction_coefficients). Needs static_correction.
+  // in-span field under the region samples' forces, fitted per node and magnitude, affine in
+  // the force's direction (nonlinear_model.h's correction_coefficients). Needs
+  // static_correction.
   bool correction_in_modes = true;
   // The nonlinear model's projection (nonlinear_model.h): Galerkin (Ψ = B, the default: an
   // energy's stationary point, robust under any load) or Petrov–Galerkin with Ψ = K0⁻¹ B (the

@@ -562,17 +562,25 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
   s->ApplyCorrection();
 }
 
-double NonlinearReducedModel::CorrectionScale(Eigen::Index node, double magnitude) const {
+NonlinearReducedModel::Bracket NonlinearReducedModel::MagnitudeBracket(double magnitude) const {
+  // Piecewise linear through the origin's value and (f_m, value_m), held beyond the last.
   const std::vector<double>& f = data_.correction_magnitudes;
-  if (f.empty()) return 1.0;
-  double f0 = 0.0, k0 = 1.0;
+  double f0 = 0.0;
   for (size_t m = 0; m < f.size(); ++m) {
-    const double k1 = data_.correction_scales(static_cast<Eigen::Index>(m), node);
-    if (magnitude <= f[m]) return k0 + (k1 - k0) * (magnitude - f0) / (f[m] - f0);
+    if (magnitude <= f[m]) {
+      const double w = (magnitude - f0) / (f[m] - f0);  // f[m] > f0 >= 0
+      return {static_cast<Eigen::Index>(m) - 1, 1.0 - w, static_cast<Eigen::Index>(m), w};
+    }
     f0 = f[m];
-    k0 = k1;
   }
-  return k0;
+  return {-1, 0.0, static_cast<Eigen::Index>(f.size()) - 1, 1.0};
+}
+
+double NonlinearReducedModel::CorrectionScale(Eigen::Index node, double magnitude) const {
+  if (data_.correction_magnitudes.empty()) return 1.0;
+  const Bracket b = MagnitudeBracket(magnitude);  // κ through (0, 1)
+  return b.low_weight * (b.low < 0 ? 1.0 : data_.correction_scales(b.low, node)) +
+         b.high_weight * data_.correction_scales(b.high, node);
 }
 
 void NonlinearReducedModel::Correct(const StepInputs& inputs, TissueState* base) const {
@@ -628,7 +636,7 @@ void NonlinearReducedModel::Correct(const StepInputs& inputs, TissueState* base)
     if (magnitude > 1e-9) {  // [N]: below it the dent is ~1e-11 m
       const double kappa = CorrectionScale(k, magnitude);
       s->corr_field.noalias() += data_.corrections.middleCols<3>(3 * k) * (kappa * e);
-      if (in_modes) AddCoefficientCorrection(k, e, &s->corr_xi);
+      if (in_modes) AddCoefficientCorrection(k, e, magnitude, &s->corr_xi);
       s->corr_nonzero = true;
     }
   }
@@ -636,28 +644,17 @@ void NonlinearReducedModel::Correct(const StepInputs& inputs, TissueState* base)
 }
 
 void NonlinearReducedModel::AddCoefficientCorrection(Eigen::Index node, const Eigen::Vector3d& e,
-                                                     Eigen::VectorXd* xi) const {
-  // G_p(|e|) φ(e), φ = (e, |e|), G_p piecewise linear through (0, 0) and (f_m, G_{p,m}), held
-  // beyond the last.
-  const std::vector<double>& f = data_.correction_magnitudes;
-  const auto count = static_cast<Eigen::Index>(f.size());
-  const double magnitude = e.norm();
-  const Eigen::Vector4d phi(e(0), e(1), e(2), magnitude);
-  const auto block = [&](Eigen::Index m) {
-    return data_.correction_coefficients.middleCols<4>(4 * (node * count + m));
-  };
-  double f0 = 0.0;
-  for (Eigen::Index m = 0; m < count; ++m) {
-    const double f1 = f[static_cast<size_t>(m)];
-    if (magnitude <= f1) {
-      const double w = (magnitude - f0) / (f1 - f0);  // f1 > f0 >= 0
-      xi->noalias() += block(m) * (w * phi);
-      if (m > 0) xi->noalias() += block(m - 1) * ((1.0 - w) * phi);
-      return;
-    }
-    f0 = f1;
+                                                     double magnitude, Eigen::VectorXd* xi) const {
+  // G_p(|e|) φ(e), G_p through (0, 0) (MagnitudeBracket).
+  const auto count = static_cast<Eigen::Index>(data_.correction_magnitudes.size());
+  const Eigen::Vector4d phi = CorrectionFeatures(e);
+  const Bracket b = MagnitudeBracket(magnitude);
+  xi->noalias() += data_.correction_coefficients.middleCols<4>(4 * (node * count + b.high)) *
+                   (b.high_weight * phi);
+  if (b.low >= 0) {
+    xi->noalias() += data_.correction_coefficients.middleCols<4>(4 * (node * count + b.low)) *
+                     (b.low_weight * phi);
   }
-  xi->noalias() += block(count - 1) * phi;
 }
 
 void NonlinearReducedModel::ReducedForces(const TissueState& state, const Eigen::VectorXd& xi,

@@ -136,6 +136,11 @@ struct NonlinearModelData {
   Eigen::MatrixXd test_modes;
 };
 
+// The correction's part in the modes is affine in the force's direction: G φ(e), φ = (e, |e|).
+inline Eigen::Vector4d CorrectionFeatures(const Eigen::Vector3d& e) {
+  return Eigen::Vector4d(e(0), e(1), e(2), e.norm());
+}
+
 // D (9 × n) of one element: vec(F − I) = D ξ for u = B ξ, row i + 3j = Σ_a ∇N_a[j] B(3 c_a + i, :)
 // with corners c (4) and shape-function gradients ∇N_a (column a of `gradients`, 3 × 4).
 Eigen::Matrix<double, 9, Eigen::Dynamic> ElementGradientMap(
@@ -194,9 +199,18 @@ class NonlinearReducedModel final : public TissueModel {
   void Correct(const StepInputs& inputs, TissueState* state) const;
   // κ of correction node `node` (index into correction_nodes) at |e| = magnitude [N].
   double CorrectionScale(Eigen::Index node, double magnitude) const;
-  // Adds G_p(|e|) (e, |e|) of correction node `node` to xi (n).
-  void AddCoefficientCorrection(Eigen::Index node, const Eigen::Vector3d& e,
+  // Adds G_p(|e|) (e, |e|) of correction node `node` to xi (n); magnitude = |e|.
+  void AddCoefficientCorrection(Eigen::Index node, const Eigen::Vector3d& e, double magnitude,
                                 Eigen::VectorXd* xi) const;
+  // Where |e| [N] falls among correction_magnitudes: value(|e|) = low_weight × value(low) +
+  // high_weight × value(high), low = -1 standing for the value at 0 (held beyond the last).
+  struct Bracket {
+    Eigen::Index low = -1;
+    double low_weight = 0.0;
+    Eigen::Index high = 0;
+    double high_weight = 0.0;
+  };
+  Bracket MagnitudeBracket(double magnitude) const;
   // T (9m × n) = blockdiag(w V ∂P/∂F) D at the gradients h.
   void TangentFactors(const double* h, double g, const double* offset, double* t) const;
   // The maps the equations are tested with: Ψ and D̃ (Petrov–Galerkin), else B and D.
