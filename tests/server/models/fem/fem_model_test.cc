@@ -726,6 +726,53 @@ TEST(FemDynamic, VectorElementPassEqualsThePortableOne) {
   }
 }
 
+// The corotational kind's vector pass computes F, R, the forces and the blocks of eight elements
+// at a time, hands the lanes its rotation iteration leaves to PolarRotationFrom, and takes the
+// last num_tets mod 8 elements one at a time. All three paths against the portable passes: a
+// box of 36 elements (4 groups and 4 left over) turned by 3 rad, where the iteration cannot
+// start from the identity (the warm start of the first step: every lane is left), stretched,
+// and with one element turned inside out.
+TEST(FemDynamic, CorotationalVectorPassEqualsThePortableOneWhenRotationsNeedTheFallback) {
+  const mesh::TetMesh box =
+      mesh_gen::BoxGridTets(4, 2, 3, Vector3d::Zero(), Vector3d(0.03, 0.01, 0.02));
+  ASSERT_EQ(box.tetrahedra.cols() % 8, 4);
+  for (const bool qlv : {false, true}) {
+    for (const bool inverted : {false, true}) {
+      FemParameters p = Material(FemKind::kCorotational);
+      p.cg_tolerance = 1e-13;
+      if (qlv) p.prony = LiverNava2008Prony();
+      const auto vector = FemModel::FromTetMesh(box, p);
+      const auto portable = FemModel::FromTetMesh(box, p);
+      portable->set_force_scalar_element_pass(true);
+      auto a = vector->MakeState();
+      auto b = portable->MakeState();
+      const Matrix3d turn = Eigen::AngleAxisd(3.0, Vector3d(0.3, 1.0, 0.2).normalized()).matrix();
+      mesh::Points x = turn * Vector3d(1.08, 0.97, 1.03).asDiagonal() * vector->rest_positions();
+      if (inverted) {
+        // Node 0 through the opposite face of its first element (a corner of the box: the only
+        // element it belongs to that it inverts is that one, and its neighbours squeeze).
+        const auto& t = box.tetrahedra;
+        const Vector3d centroid = (x.col(t(1, 0)) + x.col(t(2, 0)) + x.col(t(3, 0))) / 3.0;
+        x.col(t(0, 0)) = centroid + 0.3 * (centroid - x.col(t(0, 0)));
+      }
+      a->positions = x;
+      b->positions = x;
+      StepInputs inputs;
+      inputs.dt = 1e-3;
+      const int32_t fixed[] = {1, 2};
+      inputs.fixed_nodes = fixed;
+      for (int step = 0; step < 3; ++step) {
+        ASSERT_EQ(vector->Step(inputs, a.get()), StepStatus::kOk);
+        ASSERT_EQ(portable->Step(inputs, b.get()), StepStatus::kOk);
+      }
+      const double moved = (b->positions - x).cwiseAbs().maxCoeff();
+      ASSERT_GT(moved, 1e-5);  // [m]: the forces did move the box
+      EXPECT_LT((a->positions - b->positions).cwiseAbs().maxCoeff(), 1e-9 * moved)
+          << qlv << inverted;
+    }
+  }
+}
+
 TEST(FemDynamic, StepsAllocateNothing) {
   FemParameters p = Material(FemKind::kCorotational);
   p.prony = LiverNava2008Prony();  // with the QLV internal variables
