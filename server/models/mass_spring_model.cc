@@ -219,15 +219,16 @@ SOMASIM_MSS_TARGET inline __m512d Gather(__mmask8 lanes, __m256i index, const do
 // SlicePassScalar, the 8 nodes of a slice in the 8 lanes: the lanes' own x and v are loaded
 // once per slice and their forces summed in registers; each column gathers the other nodes'
 // x and v and scatters -F into `pending` (a column's other nodes are distinct, so the scatter
-// loses nothing); 1/l comes from rsqrt14 and two Newton steps instead of a square root and a
-// division, which would bound the throughput. The slice's integration runs on the flat values,
-// 24 at a time. Results differ from the scalar pass by rounding only.
+// loses nothing); 1/l comes from rsqrt14 and a third-order correction instead of a square root
+// and a division, which would bound the throughput, and the force is t (x_b - x_a) with the
+// scale t = F/l, so the unit vector is never formed. The slice's integration runs on the flat
+// values, 24 at a time. Results differ from the scalar pass by rounding only.
 SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
   // Local copies: the scatters could alias `pass` as far as the compiler knows.
   const SlicePass p = pass;
   const __m512d tiny = _mm512_set1_pd(1e-200);  // [m²]
   const __m512d half = _mm512_set1_pd(0.5);
-  const __m512d three_halves = _mm512_set1_pd(1.5);
+  const __m512d one = _mm512_set1_pd(1.0);
   const __m512d dt = _mm512_set1_pd(p.dt);
   const double gx = p.gravity[0], gy = p.gravity[1], gz = p.gravity[2];
   // Gravity in flat order over 24 values (8 nodes), and each flat value's node within 8.
@@ -279,20 +280,19 @@ SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
       const __m512d dvy = _mm512_sub_pd(vyb, vya);
       const __m512d dvz = _mm512_sub_pd(vzb, vza);
       const __m512d l2 = _mm512_fmadd_pd(dz, dz, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dx, dx)));
-      // 1/l from rsqrt14 and two Newton steps y ← y (3/2 - l²/2 y²) (14 → 28 → 56 bits),
-      // l = l² y; both 0 in empty lanes and for a spring shorter than 1e-100 m (as good as zero
+      // 1/l from y0 = rsqrt14(l²) (relative error < 2^-14) by one third-order correction
+      // (PositionBasedModel's): with r = 1 - l² y0², 1/l = y0 (1 + r/2 + 3r²/8 + 5r³/16 + O(r⁴)),
+      // O(r⁴) < 2^-56. 0 in empty lanes and for a spring shorter than 1e-100 m (as good as zero
       // length: no direction).
-      const __m512d h = _mm512_mul_pd(half, l2);
-      __m512d inv =
-          _mm512_maskz_rsqrt14_pd(_mm512_mask_cmp_pd_mask(lanes, l2, tiny, _CMP_GT_OQ), l2);
-      inv = _mm512_mul_pd(inv, _mm512_fnmadd_pd(h, _mm512_mul_pd(inv, inv), three_halves));
-      inv = _mm512_mul_pd(inv, _mm512_fnmadd_pd(h, _mm512_mul_pd(inv, inv), three_halves));
-      const __m512d length = _mm512_mul_pd(l2, inv);
-      const __m512d ux = _mm512_mul_pd(dx, inv);
-      const __m512d uy = _mm512_mul_pd(dy, inv);
-      const __m512d uz = _mm512_mul_pd(dz, inv);
-      const __m512d closing =
-          _mm512_fmadd_pd(dvz, uz, _mm512_fmadd_pd(dvy, uy, _mm512_mul_pd(dvx, ux)));
+      const __mmask8 has_direction = _mm512_mask_cmp_pd_mask(lanes, l2, tiny, _CMP_GT_OQ);
+      __m512d inv = _mm512_maskz_rsqrt14_pd(has_direction, l2);
+      const __m512d r = _mm512_fnmadd_pd(l2, _mm512_mul_pd(inv, inv), one);
+      const __m512d series = _mm512_fmadd_pd(
+          r, _mm512_fmadd_pd(r, _mm512_set1_pd(0.3125), _mm512_set1_pd(0.375)), half);
+      inv = _mm512_fmadd_pd(_mm512_mul_pd(inv, r), series, inv);
+      // dv · (x_b - x_a) = l × the closing speed.
+      const __m512d closing_l =
+          _mm512_fmadd_pd(dvz, dz, _mm512_fmadd_pd(dvy, dy, _mm512_mul_pd(dvx, dx)));
       __m512d k, d;
       if (p.material != nullptr) {
         // 2 bytes per spring instead of 16: the pairs' table stays in L1/L2.
@@ -306,11 +306,15 @@ SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
         k = _mm512_loadu_pd(p.stiffness_damping + 16 * c);
         d = _mm512_loadu_pd(p.stiffness_damping + 16 * c + 8);
       }
-      const __m512d magnitude = _mm512_fmadd_pd(
-          k, _mm512_sub_pd(length, _mm512_loadu_pd(p.rest + 8 * c)), _mm512_mul_pd(d, closing));
-      const __m512d sx = _mm512_mul_pd(magnitude, ux);
-      const __m512d sy = _mm512_mul_pd(magnitude, uy);
-      const __m512d sz = _mm512_mul_pd(magnitude, uz);
+      // F = t (x_b - x_a) with t = (k (l - l0) + d closing) / l = k (1 - l0 / l) + d (dv · Δx) /
+      // l²: the unit vector is never formed. t = 0 where 1/l is (the stretch term is masked).
+      const __m512d stretch =
+          _mm512_maskz_fnmadd_pd(has_direction, _mm512_loadu_pd(p.rest + 8 * c), inv, one);
+      const __m512d t = _mm512_fmadd_pd(_mm512_mul_pd(d, closing_l), _mm512_mul_pd(inv, inv),
+                                        _mm512_mul_pd(k, stretch));
+      const __m512d sx = _mm512_mul_pd(t, dx);
+      const __m512d sy = _mm512_mul_pd(t, dy);
+      const __m512d sz = _mm512_mul_pd(t, dz);
       fx = _mm512_add_pd(fx, sx);
       fy = _mm512_add_pd(fy, sy);
       fz = _mm512_add_pd(fz, sz);
