@@ -295,8 +295,10 @@ class FemModel final : public TissueModel {
   void AssembleExact(const Shape& sh, const mesh::Points& x, BlockSparseMatrix* matrix,
                      const ViscousStep* viscous) const;
   // Linear and corotational Step: ElasticForces and AssembleWarped fused into one pass over the
-  // elements (equal up to rounding), the rotations decomposed first in batches (PolarRotations),
-  // each warm-started from `quaternions` (4 × num_tets: the last step's, updated).
+  // elements (equal up to rounding), each rotation warm-started from `quaternions` (4 × num_tets:
+  // the last step's, updated). With AVX-512 the corotational kind does F, R, forces and blocks
+  // of eight elements at a time in that one pass; otherwise the rotations are decomposed first
+  // in batches (PolarRotations).
   void ForcesAndWarpedMatrix(const Shape& sh, const mesh::Points& x, double* forces,
                              double* rotations, double* quaternions, const ViscousStep* viscous,
                              double k_scale, double m_scale, BlockSparseMatrix* matrix) const;
