@@ -344,8 +344,8 @@ void FemModel::ElasticForces(const Shape& sh, const mesh::Points& x, double* for
 
 namespace {
 
-// ForcesAndWarpedMatrix's pass over the elements, on raw arrays. (Compiled for AVX-512 and FMA
-// too it was no faster: it waits on the scattered block updates, not on arithmetic.)
+// ForcesAndWarpedMatrix's pass over the elements, on raw arrays: the portable ElementPass, and
+// with AVX-512 ElementPassAvx512 (the linear kind) or CorotationalPassAvx512.
 struct WarpedPass {
   const double* x;                // 3 × num_nodes
   const double* rest;             // 3 × num_nodes
@@ -380,9 +380,9 @@ __attribute__((always_inline)) inline void DisplacementGradient(const WarpedPass
   }
 }
 
-// F = I + H of every element into f (9 × num_tets, column-major), for PolarRotations.
-__attribute__((always_inline)) inline void DeformationGradientsBody(const WarpedPass& a,
-                                                                    double* f) {
+// F = I + H of every element into f (9 × num_tets, column-major), for PolarRotations (the
+// portable path; CorotationalPassAvx512 keeps F in registers).
+void DeformationGradients(const WarpedPass& a, double* f) {
   for (size_t e = 0; e < a.num_tets; ++e) {
     double h[3][3];
     DisplacementGradient(a, e, h);
@@ -392,8 +392,6 @@ __attribute__((always_inline)) inline void DeformationGradientsBody(const Warped
     }
   }
 }
-
-void DeformationGradients(const WarpedPass& a, double* f) { DeformationGradientsBody(a, f); }
 
 // Element e's part before its blocks: its nodal forces into a.forces, its rotated gradients
 // r_a = R ∇N_a (r[4][3]) and the blocks' factors V k λ, V k μ (k = k_scale g).
