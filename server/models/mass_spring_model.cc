@@ -18,8 +18,12 @@
 //  - when a slice's columns are done, every spring touching its nodes is done too (springs that
 //    end in a slice start in it or in an earlier one), and no later spring reads them (later
 //    springs start in later slices and end beyond their start), so the slice's 8 nodes are
-//    integrated at once (symplectic Euler on the 24 flat x, y, z values, after saving them for
-//    rollback: SavesGoodStateItself) while their data is still in L1: one pass over memory.
+//    integrated at once (symplectic Euler on the 24 flat x, y, z values) while their data is
+//    still in L1: one pass over memory. The pass reads the state the step starts from and
+//    writes the new one into other buffers: Advance swaps the state's positions and velocities
+//    with its last-good ones first (SavesGoodStateItself without a copy), so nothing is saved
+//    for a rollback; and the pass checks the values it writes for NaN and speed
+//    (ChecksStateItself), so Step makes no second pass over them.
 //  - per spring the pass streams about 32 bytes (other node, l0, k, d, incoming slot); k and d
 //    live in the state in the column layout (MakeState fills and Cut zeroes both copies). When
 //    the springs share few exact (k, d) pairs (a structured mesh: 2,103 pairs for the 1M springs
@@ -82,15 +86,22 @@ struct SlicePass {
   // to it.
   double* pending;
   bool integrate;
-  // Integrating only: seed 002 eq. 4–5 with gravity and external forces, saving x and v first.
-  double* moved_x;             // x itself, written
-  double* moved_v;             // v itself, written
+  // Integrating only: seed 002 eq. 4–5 with gravity and external forces, into buffers other
+  // than x and v (the pass still reads x and v of later slices' nodes).
+  double* moved_x;             // [m], flat, written
+  double* moved_v;             // [m/s], flat, written
   const double* external;      // [N], flat, or nullptr
   const double* inverse_mass;  // [1/kg], num_nodes (0: the node does not move)
-  double* good_x;              // flat
-  double* good_v;              // flat
   double dt;                   // [s]
   double gravity[3];           // [m/s²]
+  double component_limit;      // [m/s]: a velocity component above it is flagged
+};
+
+// What an integrating pass found in the values it wrote (Step's check: TissueModel::
+// ChecksStateItself): a NaN or infinity; a velocity component above the limit.
+struct PassCheck {
+  bool non_finite = false;
+  bool maybe_too_fast = false;
 };
 
 // Seed 002 eq. 1–3 for one spring: the force F [N] on the lane's node a (the other node b gets
@@ -111,7 +122,8 @@ inline void SpringForce(const double* xa, const double* va, const double* xb, co
 
 // The slice pass one spring and one node at a time: the reference the AVX-512 pass must match
 // to rounding, and the path of CPUs without AVX-512.
-void SlicePassScalar(const SlicePass& p) {
+PassCheck SlicePassScalar(const SlicePass& p) {
+  PassCheck check;
   const size_t num_slices = (p.num_nodes + 7) / 8;
   for (size_t slice = 0; slice < num_slices; ++slice) {
     const size_t first = 8 * slice;
@@ -171,14 +183,17 @@ void SlicePassScalar(const SlicePass& p) {
         }
         if (p.external != nullptr) f += p.external[a + axis];
         const double v0 = p.v[a + axis], x0 = p.x[a + axis];
-        p.good_v[a + axis] = v0;
-        p.good_x[a + axis] = x0;
         const double v1 = v0 + p.dt * (w * f + moves * p.gravity[axis]);
+        const double x1 = x0 + p.dt * v1;
         p.moved_v[a + axis] = v1;
-        p.moved_x[a + axis] = x0 + p.dt * v1;
+        p.moved_x[a + axis] = x1;
+        // x − x is 0 for every finite x and NaN for NaN and ±∞.
+        check.non_finite = check.non_finite || !(x1 - x1 == 0.0) || !(v1 - v1 == 0.0);
+        check.maybe_too_fast = check.maybe_too_fast || std::abs(v1) > p.component_limit;
       }
     }
   }
+  return check;
 }
 
 #ifdef SOMASIM_MSS_AVX512
@@ -223,13 +238,15 @@ SOMASIM_MSS_TARGET inline __m512d Gather(__mmask8 lanes, __m256i index, const do
 // and a division, which would bound the throughput, and the force is t (x_b - x_a) with the
 // scale t = F/l, so the unit vector is never formed. The slice's integration runs on the flat
 // values, 24 at a time. Results differ from the scalar pass by rounding only.
-SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
+SOMASIM_MSS_TARGET PassCheck SlicePassAvx512(const SlicePass& pass) {
   // Local copies: the scatters could alias `pass` as far as the compiler knows.
   const SlicePass p = pass;
   const __m512d tiny = _mm512_set1_pd(1e-200);  // [m²]
   const __m512d half = _mm512_set1_pd(0.5);
   const __m512d one = _mm512_set1_pd(1.0);
   const __m512d dt = _mm512_set1_pd(p.dt);
+  const __m512d component_limit = _mm512_set1_pd(p.component_limit);
+  __mmask8 non_finite = 0, maybe_too_fast = 0;
   const double gx = p.gravity[0], gy = p.gravity[1], gz = p.gravity[2];
   // Gravity in flat order over 24 values (8 nodes), and each flat value's node within 8.
   const __m512d gravity[3] = {_mm512_setr_pd(gx, gy, gz, gx, gy, gz, gx, gy),
@@ -282,10 +299,11 @@ SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
       const __m512d l2 = _mm512_fmadd_pd(dz, dz, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dx, dx)));
       // 1/l from y0 = rsqrt14(l²) (relative error < 2^-14) by one third-order correction
       // (PositionBasedModel's): with r = 1 - l² y0², 1/l = y0 (1 + r/2 + 3r²/8 + 5r³/16 + O(r⁴)),
-      // O(r⁴) < 2^-56. 0 in empty lanes and for a spring shorter than 1e-100 m (as good as zero
-      // length: no direction).
+      // O(r⁴) < 2^-56. Lanes without a direction (empty, or a spring shorter than 1e-100 m: as
+      // good as zero length) get t = 0 below; the mask is not waited for here, as the chain
+      // from l² to t is what bounds the pass.
       const __mmask8 has_direction = _mm512_mask_cmp_pd_mask(lanes, l2, tiny, _CMP_GT_OQ);
-      __m512d inv = _mm512_maskz_rsqrt14_pd(has_direction, l2);
+      __m512d inv = _mm512_maskz_rsqrt14_pd(lanes, l2);
       const __m512d r = _mm512_fnmadd_pd(l2, _mm512_mul_pd(inv, inv), one);
       const __m512d series = _mm512_fmadd_pd(
           r, _mm512_fmadd_pd(r, _mm512_set1_pd(0.3125), _mm512_set1_pd(0.375)), half);
@@ -306,12 +324,12 @@ SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
         k = _mm512_loadu_pd(p.stiffness_damping + 16 * c);
         d = _mm512_loadu_pd(p.stiffness_damping + 16 * c + 8);
       }
-      // F = t (x_b - x_a) with t = (k (l - l0) + d closing) / l = k (1 - l0 / l) + d (dv · Δx) /
-      // l²: the unit vector is never formed. t = 0 where 1/l is (the stretch term is masked).
-      const __m512d stretch =
-          _mm512_maskz_fnmadd_pd(has_direction, _mm512_loadu_pd(p.rest + 8 * c), inv, one);
-      const __m512d t = _mm512_fmadd_pd(_mm512_mul_pd(d, closing_l), _mm512_mul_pd(inv, inv),
-                                        _mm512_mul_pd(k, stretch));
+      // F = t (x_b - x_a) with t = (k (l - l0) + d closing) / l = k - k l0 / l + d (dv · Δx) /
+      // l²: the unit vector is never formed, and k l0 and d (dv · Δx) are ready before 1/l.
+      const __m512d kl0 = _mm512_mul_pd(k, _mm512_loadu_pd(p.rest + 8 * c));
+      const __m512d t =
+          _mm512_maskz_fmadd_pd(has_direction, _mm512_mul_pd(d, closing_l), _mm512_mul_pd(inv, inv),
+                                _mm512_fnmadd_pd(kl0, inv, k));
       const __m512d sx = _mm512_mul_pd(t, dx);
       const __m512d sy = _mm512_mul_pd(t, dy);
       const __m512d sz = _mm512_mul_pd(t, dz);
@@ -376,29 +394,30 @@ SOMASIM_MSS_TARGET void SlicePassAvx512(const SlicePass& pass) {
           _mm512_maskz_mov_pd(_mm512_cmp_pd_mask(w, _mm512_setzero_pd(), _CMP_GT_OQ), gravity[k]);
       const __m512d v0 = _mm512_maskz_loadu_pd(chunk[k], vs + e);
       const __m512d x0 = _mm512_maskz_loadu_pd(chunk[k], xs + e);
-      _mm512_mask_storeu_pd(p.good_v + 3 * first + e, chunk[k], v0);
-      _mm512_mask_storeu_pd(p.good_x + 3 * first + e, chunk[k], x0);
       const __m512d v1 = _mm512_fmadd_pd(dt, _mm512_fmadd_pd(w, f, g), v0);
+      const __m512d x1 = _mm512_fmadd_pd(dt, v1, x0);
       _mm512_mask_storeu_pd(p.moved_v + 3 * first + e, chunk[k], v1);
-      _mm512_mask_storeu_pd(p.moved_x + 3 * first + e, chunk[k], _mm512_fmadd_pd(dt, v1, x0));
+      _mm512_mask_storeu_pd(p.moved_x + 3 * first + e, chunk[k], x1);
+      non_finite |= _mm512_mask_cmp_pd_mask(chunk[k], _mm512_sub_pd(x1, x1), _mm512_sub_pd(v1, v1),
+                                            _CMP_UNORD_Q);
+      maybe_too_fast |=
+          _mm512_mask_cmp_pd_mask(chunk[k], _mm512_abs_pd(v1), component_limit, _CMP_GT_OQ);
     }
   }
+  return {non_finite != 0, maybe_too_fast != 0};
 }
 
 #else
-void SlicePassAvx512(const SlicePass& p) { SlicePassScalar(p); }
+PassCheck SlicePassAvx512(const SlicePass& p) { return SlicePassScalar(p); }
 #endif
 
 // Tests switch the AVX-512 pass off to compare it with the scalar one
 // (SetMassSpringAvx512ForTesting, declared where the tests use it).
 bool g_use_avx512 = true;
 
-void RunSlicePass(const SlicePass& p) {
-  if (g_use_avx512 && CpuHasAvx512()) {
-    SlicePassAvx512(p);
-  } else {
-    SlicePassScalar(p);
-  }
+PassCheck RunSlicePass(const SlicePass& p) {
+  if (g_use_avx512 && CpuHasAvx512()) return SlicePassAvx512(p);
+  return SlicePassScalar(p);
 }
 
 // Points the pass at the state's spring constants in whichever form it holds them.
@@ -842,9 +861,14 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
     pending[3 * i + 1] += pull.y();
     pending[3 * i + 2] += pull.z();
   }
+  // SavesGoodStateItself: the state the step starts from becomes the last-good one by a swap of
+  // buffers (no copy); the pass reads it and writes every node's new x and v into the others.
+  SwapWithLastGood(state);
   SlicePass pass{};
-  pass.x = pass.moved_x = state->positions.data();
-  pass.v = pass.moved_v = state->velocities.data();
+  pass.x = LastGoodPositions(state);
+  pass.v = LastGoodVelocities(state);
+  pass.moved_x = state->positions.data();
+  pass.moved_v = state->velocities.data();
   pass.num_nodes = static_cast<size_t>(rest_.cols());
   pass.column_start = slice_column_start_.data();
   pass.other3 = column_other3_.data();
@@ -862,15 +886,34 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.integrate = true;
   pass.external = inputs.external_forces != nullptr ? inputs.external_forces->data() : nullptr;
   pass.inverse_mass = inverse_mass_.data();
-  // SavesGoodStateItself: each node's x and v go to the last-good buffers before they change.
-  pass.good_x = LastGoodPositions(state);
-  pass.good_v = LastGoodVelocities(state);
   pass.dt = inputs.dt;
   pass.gravity[0] = inputs.gravity.x();
   pass.gravity[1] = inputs.gravity.y();
   pass.gravity[2] = inputs.gravity.z();
-  RunSlicePass(pass);
+  // Every node faster than the limit has a component above limit/√3 (Step's test).
+  pass.component_limit = speed_limit() / std::sqrt(3.0);
+  const PassCheck check = RunSlicePass(pass);
   ApplyFixedAndPrescribed(inputs, state);
+  // ChecksStateItself: the pass checked every value it wrote, but fixed and prescribed nodes
+  // have been given new ones since. When the pass found nothing, checking those nodes completes
+  // the check of the final state; when it flagged something (a step about to be rejected, or
+  // fast nodes to be measured exactly), Step's own pass over the final state decides, as for
+  // any model.
+  if (check.non_finite || check.maybe_too_fast) {
+    CheckWholeState(state);
+    return;
+  }
+  bool non_finite = false, maybe_too_fast = false;
+  const auto check_node = [&](int32_t node) {
+    for (Eigen::Index axis = 0; axis < 3; ++axis) {
+      const double x = state->positions(axis, node), v = state->velocities(axis, node);
+      non_finite = non_finite || !(x - x == 0.0) || !(v - v == 0.0);
+      maybe_too_fast = maybe_too_fast || std::abs(v) > pass.component_limit;
+    }
+  };
+  for (const int32_t node : inputs.fixed_nodes) check_node(node);
+  for (const int32_t node : inputs.prescribed_nodes) check_node(node);
+  SetStateChecked(state, non_finite, maybe_too_fast);
 }
 
 Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_t node) const {

@@ -101,8 +101,13 @@ class MassSpringModel final : public TissueModel {
 
  protected:
   void Advance(const StepInputs& inputs, TissueState* state) const override;
-  // The explicit step saves the state it starts from during its pass over the nodes.
+  // The explicit step keeps the state it starts from as the last-good one (SwapWithLastGood) and
+  // writes the new one in its pass over the nodes...
   bool SavesGoodStateItself() const override {
+    return integrator_ == MassSpringIntegrator::kSymplecticEuler;
+  }
+  // ... and checks the state it writes.
+  bool ChecksStateItself() const override {
     return integrator_ == MassSpringIntegrator::kSymplecticEuler;
   }
 

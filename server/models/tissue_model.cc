@@ -142,6 +142,13 @@ void TissueModel::InitialiseState(const mesh::Points& rest, TissueState* state) 
   state->counters = {};
 }
 
+void TissueModel::CheckWholeState(TissueState* state) const {
+  const FlatCheck flat =
+      CheckState(state->positions.data(), state->velocities.data(),
+                 static_cast<size_t>(state->positions.size()), speed_limit_ / std::sqrt(3.0));
+  SetStateChecked(state, flat.non_finite, flat.maybe_too_fast);
+}
+
 StepStatus TissueModel::Step(const StepInputs& inputs, TissueState* state) const {
   const int32_t n = num_nodes();
   const auto in_range = [n](int32_t node) { return node >= 0 && node < n; };

@@ -135,6 +135,23 @@ class TissueModel {
   static double* LastGoodVelocities(TissueState* state) {
     return state->last_good_velocities_.data();
   }
+  // For a model whose Advance writes every position and velocity anew from the ones the step
+  // starts from (SavesGoodStateItself without a copy): exchanges the state's positions and
+  // velocities with its last-good buffers, which swaps pointers (no copy, no allocation). The
+  // start of the step is then the last-good state, to be read, and `positions`/`velocities`
+  // hold stale values until the model writes them all.
+  static void SwapWithLastGood(TissueState* state) {
+    state->positions.swap(state->last_good_positions_);
+    state->velocities.swap(state->last_good_velocities_);
+  }
+  // For a model that checks the state itself (ChecksStateItself): sets the flags Step reads.
+  static void SetStateChecked(TissueState* state, bool non_finite, bool maybe_too_fast) {
+    state->checked_non_finite_ = non_finite;
+    state->checked_maybe_too_fast_ = maybe_too_fast;
+  }
+  // Step's own check of every position and velocity, setting the same flags: the fallback of a
+  // model that checks itself when its own check cannot answer for the final state.
+  void CheckWholeState(TissueState* state) const;
   // Sizes the base-class buffers of a freshly made state and fills them with `rest`.
   static void InitialiseState(const mesh::Points& rest, TissueState* state);
 

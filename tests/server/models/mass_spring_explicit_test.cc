@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <optional>
 #include <random>
 #include <span>
 #include <vector>
@@ -235,6 +236,62 @@ TEST(MassSpringExplicit, AvxAndScalarStepsAgreeWithTheFormula) {
     // The second step checks that the pass leaves its pending forces at zero.
     EXPECT_LT(RelativeDifference(scalar->velocities, fast->velocities), 1e-12);
     EXPECT_LT(RelativeDifference(scalar->positions, fast->positions), 1e-12);
+  }
+}
+
+TEST(MassSpringExplicit, ThePassChecksWhatStepWouldCheckOnBothPaths) {
+  // The explicit step checks the values its pass writes (ChecksStateItself) instead of Step's own
+  // pass over the state, and keeps the state it starts from by a buffer swap. Fixed and
+  // prescribed nodes get their values after the pass: a target jump faster than the speed limit
+  // must still reject the step, one just under it must not, and a non-finite force must reject
+  // it; each rejection restores the state the step started from, bit for bit.
+  const Graph g = StressGraph();
+  MassSpringParameters p;
+  p.spring_stiffness = 30.0;
+  p.node_mass = 0.002;
+  p.damping_ratio = 0.4;
+  const auto model = MassSpringModel::FromEdges(g.rest, g.edges, p);
+  for (const bool avx : {true, false}) {
+    SCOPED_TRACE(avx ? "AVX-512 pass (where the CPU has it)" : "scalar pass");
+    std::optional<ScalarPass> scalar_pass;
+    if (!avx) scalar_pass.emplace();
+    const auto state = model->MakeState();
+    Randomise(state.get(), 0.001, 0.01, 10);
+    StepInputs inputs;
+    inputs.dt = 1e-4;  // [s]
+    inputs.gravity = Vector3d(0.0, 0.0, -9.81);
+    const int32_t fixed[] = {3};
+    const int32_t prescribed[] = {57};
+    inputs.fixed_nodes = fixed;
+    inputs.prescribed_nodes = prescribed;
+    mesh::Points target = state->positions.col(57);
+    inputs.prescribed_positions = &target;
+    ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);  // ordinary, with no jump
+    const mesh::Points x0 = state->positions, v0 = state->velocities;
+    const auto unchanged = [&] {
+      return (state->positions.array() == x0.array()).all() &&
+             (state->velocities.array() == v0.array()).all();
+    };
+    // Node 57 jumps at twice the speed limit, along one axis.
+    target = x0.col(57);
+    target(2, 0) += 2.0 * model->speed_limit() * inputs.dt;
+    EXPECT_EQ(model->Step(inputs, state.get()), StepStatus::kRejectedTooFast);
+    EXPECT_TRUE(unchanged());
+    // At 0.9 of the limit along one axis the component is above limit/√3 (the exact test runs)
+    // and the step is accepted.
+    target = x0.col(57);
+    target(2, 0) += 0.9 * model->speed_limit() * inputs.dt;
+    EXPECT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+    EXPECT_EQ(state->positions.col(57), target.col(0));
+    // A node placed absurdly far (1e200 m: l² overflows, the spring forces are NaN) by an edit
+    // of the state: the step is rejected and the edited state kept as it was.
+    state->positions(0, 120) = 1e200;
+    const mesh::Points edited_x = state->positions, edited_v = state->velocities;
+    target = state->positions.col(57);
+    EXPECT_EQ(model->Step(inputs, state.get()), StepStatus::kRejectedNonFinite);
+    EXPECT_TRUE((state->positions.array() == edited_x.array()).all());
+    EXPECT_TRUE((state->velocities.array() == edited_v.array()).all());
+    EXPECT_EQ(state->counters.rejected_steps, 2);
   }
 }
 
