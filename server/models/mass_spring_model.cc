@@ -73,12 +73,14 @@ struct SlicePass {
   // (k [N/m], d [N s/m] interleaved; pair 0 is (0, 0): empty lanes and cut springs).
   const uint16_t* material;  // 8 per column
   const double* material_kd;
-  const uint8_t* consecutive;       // 1 per column: other nodes b, b + 1, ..., b + 7
-  const int32_t* incoming_start;    // num_slices + 1
-  const int32_t* incoming_slot;     // 8 per incoming column
-  const uint8_t* incoming_lanes;    // 1 per incoming column
-  const uint8_t* incoming_rotated;  // 1 per incoming column
-  double* ring;                     // [N], 24 per column, ring_mask + 1 columns
+  const uint8_t* consecutive;        // 1 per column: other nodes b, b + 1, ..., b + 7
+  const int32_t* gathered_column;    // num_slices: the first column not consecutive
+  const int32_t* incoming_start;     // num_slices + 1
+  const int32_t* incoming_slot;      // 8 per incoming column
+  const uint8_t* incoming_lanes;     // 1 per incoming column
+  const uint8_t* incoming_rotated;   // 1 per incoming column
+  const int32_t* gathered_incoming;  // num_slices: the first not rotated incoming column
+  double* ring;                      // [N], 24 per column, ring_mask + 1 columns
   size_t ring_mask;
   // Forces [N], flat. Integrating: what anchors and grasps add, zero again when the pass is
   // done, or nullptr when nothing was added (no anchors, no grasps: the pass then neither
@@ -231,6 +233,70 @@ SOMASIM_MSS_TARGET inline __m512d Gather(__mmask8 lanes, __m256i index, const do
   return _mm512_mask_i32gather_pd(_mm512_setzero_pd(), lanes, index, base, 8);
 }
 
+// One column of springs (SlicePassAvx512): the forces F on the 8 lanes' nodes a from their
+// other nodes b, added to f and stored in the ring. Lanes are off `lanes`' mask: F = 0.
+struct Lanes8 {
+  __m512d x, y, z, vx, vy, vz;
+};
+SOMASIM_MSS_TARGET __attribute__((always_inline)) inline void SpringColumn(
+    const SlicePass& p, size_t c, __mmask8 lanes, const Lanes8& a, const Lanes8& b, __m512d* fx,
+    __m512d* fy, __m512d* fz) {
+  const __m512d tiny = _mm512_set1_pd(1e-200);  // [m²]
+  const __m512d half = _mm512_set1_pd(0.5);
+  const __m512d one = _mm512_set1_pd(1.0);
+  const __m512d xa = a.x, ya = a.y, za = a.z, vxa = a.vx, vya = a.vy, vza = a.vz;
+  const __m512d xb = b.x, yb = b.y, zb = b.z, vxb = b.vx, vyb = b.vy, vzb = b.vz;
+  const __m512d dx = _mm512_sub_pd(xb, xa);
+  const __m512d dy = _mm512_sub_pd(yb, ya);
+  const __m512d dz = _mm512_sub_pd(zb, za);
+  const __m512d dvx = _mm512_sub_pd(vxb, vxa);
+  const __m512d dvy = _mm512_sub_pd(vyb, vya);
+  const __m512d dvz = _mm512_sub_pd(vzb, vza);
+  const __m512d l2 = _mm512_fmadd_pd(dz, dz, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dx, dx)));
+  // 1/l from y0 = rsqrt14(l²) (relative error < 2^-14) by one third-order correction
+  // (PositionBasedModel's): with r = 1 - l² y0², 1/l = y0 (1 + r/2 + 3r²/8 + 5r³/16 + O(r⁴)),
+  // O(r⁴) < 2^-56. Lanes without a direction (empty, or a spring shorter than 1e-100 m: as
+  // good as zero length) get t = 0 below; the mask is not waited for here, as the chain
+  // from l² to t is what bounds the pass.
+  const __mmask8 has_direction = _mm512_mask_cmp_pd_mask(lanes, l2, tiny, _CMP_GT_OQ);
+  __m512d inv = _mm512_maskz_rsqrt14_pd(lanes, l2);
+  const __m512d r = _mm512_fnmadd_pd(l2, _mm512_mul_pd(inv, inv), one);
+  const __m512d series =
+      _mm512_fmadd_pd(r, _mm512_fmadd_pd(r, _mm512_set1_pd(0.3125), _mm512_set1_pd(0.375)), half);
+  inv = _mm512_fmadd_pd(_mm512_mul_pd(inv, r), series, inv);
+  // dv · (x_b - x_a) = l × the closing speed.
+  const __m512d closing_l =
+      _mm512_fmadd_pd(dvz, dz, _mm512_fmadd_pd(dvy, dy, _mm512_mul_pd(dvx, dx)));
+  __m512d k, d;
+  if (p.material != nullptr) {
+    // 2 bytes per spring instead of 16: the pairs' table stays in L1/L2.
+    const __m256i pair = _mm256_slli_epi32(
+        _mm256_cvtepu16_epi32(
+            _mm_loadu_si128(reinterpret_cast<const __m128i*>(p.material + 8 * c))),
+        1);
+    k = Gather(lanes, pair, p.material_kd);
+    d = Gather(lanes, pair, p.material_kd + 1);
+  } else {
+    k = _mm512_loadu_pd(p.stiffness_damping + 16 * c);
+    d = _mm512_loadu_pd(p.stiffness_damping + 16 * c + 8);
+  }
+  // F = t (x_b - x_a) with t = (k (l - l0) + d closing) / l = k - k l0 / l + d (dv · Δx) /
+  // l²: the unit vector is never formed, and k l0 and d (dv · Δx) are ready before 1/l.
+  const __m512d kl0 = _mm512_mul_pd(k, _mm512_loadu_pd(p.rest + 8 * c));
+  const __m512d t = _mm512_maskz_fmadd_pd(has_direction, _mm512_mul_pd(d, closing_l),
+                                          _mm512_mul_pd(inv, inv), _mm512_fnmadd_pd(kl0, inv, k));
+  const __m512d sx = _mm512_mul_pd(t, dx);
+  const __m512d sy = _mm512_mul_pd(t, dy);
+  const __m512d sz = _mm512_mul_pd(t, dz);
+  *fx = _mm512_add_pd(*fx, sx);
+  *fy = _mm512_add_pd(*fy, sy);
+  *fz = _mm512_add_pd(*fz, sz);
+  double* const out = p.ring + 24 * (c & p.ring_mask);
+  _mm512_storeu_pd(out, sx);
+  _mm512_storeu_pd(out + 8, sy);
+  _mm512_storeu_pd(out + 16, sz);
+}
+
 // SlicePassScalar, the 8 nodes of a slice in the 8 lanes: the lanes' own x and v are loaded
 // once per slice and their forces summed in registers; each column gathers the other nodes'
 // x and v and scatters -F into `pending` (a column's other nodes are distinct, so the scatter
@@ -241,9 +307,6 @@ SOMASIM_MSS_TARGET inline __m512d Gather(__mmask8 lanes, __m256i index, const do
 SOMASIM_MSS_TARGET PassCheck SlicePassAvx512(const SlicePass& pass) {
   // Local copies: the scatters could alias `pass` as far as the compiler knows.
   const SlicePass p = pass;
-  const __m512d tiny = _mm512_set1_pd(1e-200);  // [m²]
-  const __m512d half = _mm512_set1_pd(0.5);
-  const __m512d one = _mm512_set1_pd(1.0);
   const __m512d dt = _mm512_set1_pd(p.dt);
   const __m512d component_limit = _mm512_set1_pd(p.component_limit);
   __mmask8 non_finite = 0, maybe_too_fast = 0;
@@ -270,82 +333,32 @@ SOMASIM_MSS_TARGET PassCheck SlicePassAvx512(const SlicePass& pass) {
     Deinterleave(_mm512_maskz_loadu_pd(chunk[0], vs), _mm512_maskz_loadu_pd(chunk[1], vs + 8),
                  _mm512_maskz_loadu_pd(chunk[2], vs + 16), &vxa, &vya, &vza);
     __m512d fx = _mm512_setzero_pd(), fy = _mm512_setzero_pd(), fz = _mm512_setzero_pd();
+    const Lanes8 own{xa, ya, za, vxa, vya, vza};
+    const auto gathered_start = static_cast<size_t>(p.gathered_column[slice]);
+    for (auto c = static_cast<size_t>(p.column_start[slice]); c < gathered_start; ++c) {
+      const double* const xo = p.x + p.other3[8 * c];
+      const double* const vo = p.v + p.other3[8 * c];
+      Lanes8 other;
+      Deinterleave(_mm512_loadu_pd(xo), _mm512_loadu_pd(xo + 8), _mm512_loadu_pd(xo + 16), &other.x,
+                   &other.y, &other.z);
+      Deinterleave(_mm512_loadu_pd(vo), _mm512_loadu_pd(vo + 8), _mm512_loadu_pd(vo + 16),
+                   &other.vx, &other.vy, &other.vz);
+      SpringColumn(p, c, 0xFF, own, other, &fx, &fy, &fz);
+    }
     const auto columns_end = static_cast<size_t>(p.column_start[slice + 1]);
-    for (auto c = static_cast<size_t>(p.column_start[slice]); c < columns_end; ++c) {
+    for (size_t c = gathered_start; c < columns_end; ++c) {
       const __mmask8 lanes = p.lanes[c];
-      __m512d xb, yb, zb, vxb, vyb, vzb;
-      if (p.consecutive[c] != 0) {
-        const double* const xo = p.x + p.other3[8 * c];
-        const double* const vo = p.v + p.other3[8 * c];
-        Deinterleave(_mm512_loadu_pd(xo), _mm512_loadu_pd(xo + 8), _mm512_loadu_pd(xo + 16), &xb,
-                     &yb, &zb);
-        Deinterleave(_mm512_loadu_pd(vo), _mm512_loadu_pd(vo + 8), _mm512_loadu_pd(vo + 16), &vxb,
-                     &vyb, &vzb);
-      } else {
-        const __m256i b = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p.other3 + 8 * c));
-        xb = Gather(lanes, b, p.x);
-        yb = Gather(lanes, b, p.x + 1);
-        zb = Gather(lanes, b, p.x + 2);
-        vxb = Gather(lanes, b, p.v);
-        vyb = Gather(lanes, b, p.v + 1);
-        vzb = Gather(lanes, b, p.v + 2);
-      }
-      const __m512d dx = _mm512_sub_pd(xb, xa);
-      const __m512d dy = _mm512_sub_pd(yb, ya);
-      const __m512d dz = _mm512_sub_pd(zb, za);
-      const __m512d dvx = _mm512_sub_pd(vxb, vxa);
-      const __m512d dvy = _mm512_sub_pd(vyb, vya);
-      const __m512d dvz = _mm512_sub_pd(vzb, vza);
-      const __m512d l2 = _mm512_fmadd_pd(dz, dz, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dx, dx)));
-      // 1/l from y0 = rsqrt14(l²) (relative error < 2^-14) by one third-order correction
-      // (PositionBasedModel's): with r = 1 - l² y0², 1/l = y0 (1 + r/2 + 3r²/8 + 5r³/16 + O(r⁴)),
-      // O(r⁴) < 2^-56. Lanes without a direction (empty, or a spring shorter than 1e-100 m: as
-      // good as zero length) get t = 0 below; the mask is not waited for here, as the chain
-      // from l² to t is what bounds the pass.
-      const __mmask8 has_direction = _mm512_mask_cmp_pd_mask(lanes, l2, tiny, _CMP_GT_OQ);
-      __m512d inv = _mm512_maskz_rsqrt14_pd(lanes, l2);
-      const __m512d r = _mm512_fnmadd_pd(l2, _mm512_mul_pd(inv, inv), one);
-      const __m512d series = _mm512_fmadd_pd(
-          r, _mm512_fmadd_pd(r, _mm512_set1_pd(0.3125), _mm512_set1_pd(0.375)), half);
-      inv = _mm512_fmadd_pd(_mm512_mul_pd(inv, r), series, inv);
-      // dv · (x_b - x_a) = l × the closing speed.
-      const __m512d closing_l =
-          _mm512_fmadd_pd(dvz, dz, _mm512_fmadd_pd(dvy, dy, _mm512_mul_pd(dvx, dx)));
-      __m512d k, d;
-      if (p.material != nullptr) {
-        // 2 bytes per spring instead of 16: the pairs' table stays in L1/L2.
-        const __m256i pair = _mm256_slli_epi32(
-            _mm256_cvtepu16_epi32(
-                _mm_loadu_si128(reinterpret_cast<const __m128i*>(p.material + 8 * c))),
-            1);
-        k = Gather(lanes, pair, p.material_kd);
-        d = Gather(lanes, pair, p.material_kd + 1);
-      } else {
-        k = _mm512_loadu_pd(p.stiffness_damping + 16 * c);
-        d = _mm512_loadu_pd(p.stiffness_damping + 16 * c + 8);
-      }
-      // F = t (x_b - x_a) with t = (k (l - l0) + d closing) / l = k - k l0 / l + d (dv · Δx) /
-      // l²: the unit vector is never formed, and k l0 and d (dv · Δx) are ready before 1/l.
-      const __m512d kl0 = _mm512_mul_pd(k, _mm512_loadu_pd(p.rest + 8 * c));
-      const __m512d t =
-          _mm512_maskz_fmadd_pd(has_direction, _mm512_mul_pd(d, closing_l), _mm512_mul_pd(inv, inv),
-                                _mm512_fnmadd_pd(kl0, inv, k));
-      const __m512d sx = _mm512_mul_pd(t, dx);
-      const __m512d sy = _mm512_mul_pd(t, dy);
-      const __m512d sz = _mm512_mul_pd(t, dz);
-      fx = _mm512_add_pd(fx, sx);
-      fy = _mm512_add_pd(fy, sy);
-      fz = _mm512_add_pd(fz, sz);
-      double* const out = p.ring + 24 * (c & p.ring_mask);
-      _mm512_storeu_pd(out, sx);
-      _mm512_storeu_pd(out + 8, sy);
-      _mm512_storeu_pd(out + 16, sz);
+      const __m256i b = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p.other3 + 8 * c));
+      const Lanes8 other{Gather(lanes, b, p.x),     Gather(lanes, b, p.x + 1),
+                         Gather(lanes, b, p.x + 2), Gather(lanes, b, p.v),
+                         Gather(lanes, b, p.v + 1), Gather(lanes, b, p.v + 2)};
+      SpringColumn(p, c, lanes, own, other, &fx, &fy, &fz);
     }
     // -F of the springs ending on the slice's nodes, from their columns' places in the ring.
-    const auto incoming_end = static_cast<size_t>(p.incoming_start[slice + 1]);
-    for (auto c = static_cast<size_t>(p.incoming_start[slice]); c < incoming_end; ++c) {
+    const auto rotated_end = static_cast<size_t>(p.gathered_incoming[slice]);
+    for (auto c = static_cast<size_t>(p.incoming_start[slice]); c < rotated_end; ++c) {
       const int32_t* const q = p.incoming_slot + 8 * c;
-      if (p.incoming_rotated[c] != 0) {
+      {
         const double* const first_column = p.ring + q[0];
         const double* const second_column = p.ring + q[1];
         const __m512i rotation =
@@ -356,8 +369,11 @@ SOMASIM_MSS_TARGET PassCheck SlicePassAvx512(const SlicePass& pass) {
                                                       _mm512_loadu_pd(second_column + 8)));
         fz = _mm512_sub_pd(fz, _mm512_permutex2var_pd(_mm512_loadu_pd(first_column + 16), rotation,
                                                       _mm512_loadu_pd(second_column + 16)));
-        continue;
       }
+    }
+    const auto incoming_end = static_cast<size_t>(p.incoming_start[slice + 1]);
+    for (size_t c = rotated_end; c < incoming_end; ++c) {
+      const int32_t* const q = p.incoming_slot + 8 * c;
       const __mmask8 lanes = p.incoming_lanes[c];
       const __m256i slot = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(q));
       fx = _mm512_sub_pd(fx, Gather(lanes, slot, p.ring));
@@ -645,35 +661,62 @@ void MassSpringModel::BuildExplicitLayout() {
   column_lanes_.clear();
   column_consecutive_.clear();
   spring_slot_.assign(m, 0);
+  slice_gathered_column_.clear();
+  struct OutgoingColumn {
+    std::array<size_t, 8> spring;  // m: an empty lane
+    std::array<int32_t, 8> other;
+    uint8_t lanes;
+    bool consecutive;
+  };
+  std::vector<OutgoingColumn> columns;
   for (size_t slice = 0; slice < num_slices; ++slice) {
     const size_t first = 8 * slice, last = std::min(n, first + 8);
     size_t width = 0;
     for (size_t node = first; node < last; ++node)
       width = std::max(width, start[node + 1] - start[node]);
+    columns.clear();
     for (size_t k = 0; k < width; ++k) {
-      const auto column = static_cast<int32_t>(column_lanes_.size());
-      std::array<int32_t, 8> other{};
-      std::array<double, 8> rest{};
-      uint8_t lanes = 0;
+      OutgoingColumn column{};
+      column.spring.fill(m);
       for (size_t node = first; node < last; ++node) {
         if (start[node] + k >= start[node + 1]) continue;
         const size_t lane = node - first;
         const size_t s = by_node[start[node] + k];
-        other[lane] =
+        column.spring[lane] = s;
+        column.other[lane] =
             3 * (spring_i_[s] == static_cast<int32_t>(node) ? spring_j_[s] : spring_i_[s]);
-        rest[lane] = rest_length_[s];
-        lanes = static_cast<uint8_t>(lanes | (1U << lane));
-        spring_slot_[s] = 8 * column + static_cast<int32_t>(lane);
+        column.lanes = static_cast<uint8_t>(column.lanes | (1U << lane));
       }
-      column_other3_.insert(column_other3_.end(), other.begin(), other.end());
-      column_rest_.insert(column_rest_.end(), rest.begin(), rest.end());
-      column_lanes_.push_back(lanes);
       // Other nodes b, b + 1, ..., b + 7 in the 8 lanes (common in structured meshes): the pass
       // loads their x and v as 24 consecutive values instead of gathering them.
-      bool consecutive = lanes == 0xFF && static_cast<size_t>(other[0]) + 24 <= 3 * n;
-      for (size_t l = 1; l < 8; ++l)
-        consecutive = consecutive && other[l] == other[0] + 3 * static_cast<int32_t>(l);
-      column_consecutive_.push_back(consecutive ? 1 : 0);
+      const std::array<int32_t, 8>& other = column.other;
+      column.consecutive = column.lanes == 0xFF && static_cast<size_t>(other[0]) + 24 <= 3 * n;
+      for (size_t l = 1; l < 8; ++l) {
+        column.consecutive =
+            column.consecutive && other[l] == other[0] + 3 * static_cast<int32_t>(l);
+      }
+      columns.push_back(column);
+    }
+    // The consecutive columns first, then the gathered ones: the pass takes each kind in a loop
+    // of its own, with no branch per column.
+    std::stable_partition(columns.begin(), columns.end(),
+                          [](const OutgoingColumn& column) { return column.consecutive; });
+    for (const OutgoingColumn& column : columns) {
+      const auto index = static_cast<int32_t>(column_lanes_.size());
+      if (!column.consecutive && slice_gathered_column_.size() == slice) {
+        slice_gathered_column_.push_back(index);
+      }
+      for (size_t lane = 0; lane < 8; ++lane) {
+        const size_t s = column.spring[lane];
+        column_rest_.push_back(s < m ? rest_length_[s] : 0.0);
+        if (s < m) spring_slot_[s] = 8 * index + static_cast<int32_t>(lane);
+      }
+      column_other3_.insert(column_other3_.end(), column.other.begin(), column.other.end());
+      column_lanes_.push_back(column.lanes);
+      column_consecutive_.push_back(column.consecutive ? 1 : 0);
+    }
+    if (slice_gathered_column_.size() == slice) {
+      slice_gathered_column_.push_back(static_cast<int32_t>(column_lanes_.size()));
     }
     slice_column_start_.push_back(static_cast<int32_t>(column_lanes_.size()));
   }
@@ -701,10 +744,18 @@ void MassSpringModel::BuildExplicitLayout() {
   incoming_slot_.clear();
   incoming_lanes_.clear();
   incoming_rotated_.clear();
+  slice_gathered_incoming_.clear();
+  struct IncomingColumn {
+    std::array<int32_t, 8> slot;
+    uint8_t lanes;
+    bool rotated;
+  };
+  std::vector<IncomingColumn> incoming_columns;
   for (size_t slice = 0; slice < num_slices; ++slice) {
     const size_t first = 8 * slice, last = std::min(n, first + 8);
     size_t width = 0;
     for (size_t node = first; node < last; ++node) width = std::max(width, incoming[node].size());
+    incoming_columns.clear();
     for (size_t k = 0; k < width; ++k) {
       std::array<int32_t, 8> slot{};
       uint8_t lanes = 0;
@@ -714,8 +765,8 @@ void MassSpringModel::BuildExplicitLayout() {
         lanes = static_cast<uint8_t>(lanes | (1U << (node - first)));
       }
       // Lanes 0..7 reading lanes r..7 of one column and then lanes 0..r-1 of another (common
-      // in structured meshes): the pass loads both columns and rotates them instead of
-      // gathering; the slots then hold the two columns' ring indices and r.
+      // in structured meshes): the pass loads both incoming_columns and rotates them instead of
+      // gathering; the slots then hold the two incoming_columns' ring indices and r.
       const int32_t r = slot[0] % 24;
       bool rotated = lanes == 0xFF && r < 8;
       for (int32_t l = 1; l < 8 && rotated; ++l) {
@@ -728,9 +779,22 @@ void MassSpringModel::BuildExplicitLayout() {
         const int32_t second = r == 0 ? slot[0] : slot[static_cast<size_t>(8 - r)];
         slot = {slot[0] - r, second, r, 0, 0, 0, 0, 0};
       }
-      incoming_slot_.insert(incoming_slot_.end(), slot.begin(), slot.end());
-      incoming_lanes_.push_back(lanes);
-      incoming_rotated_.push_back(rotated ? 1 : 0);
+      incoming_columns.push_back({slot, lanes, rotated});
+    }
+    // The rotated incoming_columns first, then the gathered ones: the pass takes each kind in a
+    // loop of its own, with no branch per column.
+    std::stable_partition(incoming_columns.begin(), incoming_columns.end(),
+                          [](const IncomingColumn& column) { return column.rotated; });
+    for (const IncomingColumn& column : incoming_columns) {
+      if (!column.rotated && slice_gathered_incoming_.size() == slice) {
+        slice_gathered_incoming_.push_back(static_cast<int32_t>(incoming_lanes_.size()));
+      }
+      incoming_slot_.insert(incoming_slot_.end(), column.slot.begin(), column.slot.end());
+      incoming_lanes_.push_back(column.lanes);
+      incoming_rotated_.push_back(column.rotated ? 1 : 0);
+    }
+    if (slice_gathered_incoming_.size() == slice) {
+      slice_gathered_incoming_.push_back(static_cast<int32_t>(incoming_lanes_.size()));
     }
     slice_incoming_start_.push_back(static_cast<int32_t>(incoming_lanes_.size()));
   }
@@ -803,10 +867,12 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   pass.lanes = column_lanes_.data();
   SetSpringConstants(ms, material_kd_, &pass);
   pass.consecutive = column_consecutive_.data();
+  pass.gathered_column = slice_gathered_column_.data();
   pass.incoming_start = slice_incoming_start_.data();
   pass.incoming_slot = incoming_slot_.data();
   pass.incoming_lanes = incoming_lanes_.data();
   pass.incoming_rotated = incoming_rotated_.data();
+  pass.gathered_incoming = slice_gathered_incoming_.data();
   pass.ring = ms.column_forces.data();
   pass.ring_mask = static_cast<size_t>(ring_columns_) - 1;
   pass.pending = forces->data();
@@ -876,10 +942,12 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.lanes = column_lanes_.data();
   SetSpringConstants(*state, material_kd_, &pass);
   pass.consecutive = column_consecutive_.data();
+  pass.gathered_column = slice_gathered_column_.data();
   pass.incoming_start = slice_incoming_start_.data();
   pass.incoming_slot = incoming_slot_.data();
   pass.incoming_lanes = incoming_lanes_.data();
   pass.incoming_rotated = incoming_rotated_.data();
+  pass.gathered_incoming = slice_gathered_incoming_.data();
   pass.ring = state->column_forces.data();
   pass.ring_mask = static_cast<size_t>(ring_columns_) - 1;
   pass.pending = anchor_nodes_.empty() && inputs.attachments.empty() ? nullptr : pending;

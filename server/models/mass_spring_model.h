@@ -155,7 +155,10 @@ class MassSpringModel final : public TissueModel {
   std::vector<double> column_rest_;          // [m], 8 per column: l0 (0: empty)
   std::vector<uint8_t> column_lanes_;        // 1 per column: bit l set when lane l has a spring
   std::vector<uint8_t> column_consecutive_;  // 1 per column: 1 if its other nodes are b..b + 7
-  std::vector<int32_t> spring_slot_;         // num_springs: 8 × column + lane of each spring
+  // num_slices: each slice's first column that is not consecutive (the consecutive ones come
+  // first in a slice).
+  std::vector<int32_t> slice_gathered_column_;
+  std::vector<int32_t> spring_slot_;  // num_springs: 8 × column + lane of each spring
   // When the springs share few (k, d) pairs (BuildExplicitLayout decides): the pairs (k [N/m],
   // d [N s/m] interleaved; pair 0 is (0, 0), for empty lanes and cut springs) and each spring's
   // pair; the state then holds MassSpringState::column_material instead of
@@ -171,6 +174,9 @@ class MassSpringModel final : public TissueModel {
   std::vector<int32_t> incoming_slot_;         // 8 per incoming column: ring index of the x
   std::vector<uint8_t> incoming_lanes_;        // 1 per incoming column: lanes with a spring
   std::vector<uint8_t> incoming_rotated_;      // 1 per incoming column: 1 if two rotated columns
+  // num_slices: each slice's first incoming column that is not rotated (the rotated ones come
+  // first in a slice).
+  std::vector<int32_t> slice_gathered_incoming_;
   // --- end of explicit-step data ---
   // --- implicit-step data (mass_spring_implicit.cc) ---
   // Multicolour layout of the Gauss-Seidel preconditioner: nodes grouped by colour (no spring
