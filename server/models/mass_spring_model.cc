@@ -356,30 +356,38 @@ SOMASIM_MSS_TARGET PassCheck SlicePassAvx512(const SlicePass& pass) {
     }
     // -F of the springs ending on the slice's nodes, from their columns' places in the ring.
     const auto rotated_end = static_cast<size_t>(p.gathered_incoming[slice]);
+    // The incoming forces are summed apart from the outgoing ones (incoming_x, incoming_y,
+    // incoming_z): two shorter chains of additions instead of one.
+    __m512d incoming_x = _mm512_setzero_pd(), incoming_y = _mm512_setzero_pd(),
+            incoming_z = _mm512_setzero_pd();
     for (auto c = static_cast<size_t>(p.incoming_start[slice]); c < rotated_end; ++c) {
       const int32_t* const q = p.incoming_slot + 8 * c;
-      {
-        const double* const first_column = p.ring + q[0];
-        const double* const second_column = p.ring + q[1];
-        const __m512i rotation =
-            _mm512_add_epi64(_mm512_set1_epi64(q[2]), Indices(0, 1, 2, 3, 4, 5, 6, 7));
-        fx = _mm512_sub_pd(fx, _mm512_permutex2var_pd(_mm512_loadu_pd(first_column), rotation,
-                                                      _mm512_loadu_pd(second_column)));
-        fy = _mm512_sub_pd(fy, _mm512_permutex2var_pd(_mm512_loadu_pd(first_column + 8), rotation,
-                                                      _mm512_loadu_pd(second_column + 8)));
-        fz = _mm512_sub_pd(fz, _mm512_permutex2var_pd(_mm512_loadu_pd(first_column + 16), rotation,
-                                                      _mm512_loadu_pd(second_column + 16)));
-      }
+      const double* const first_column = p.ring + q[0];
+      const double* const second_column = p.ring + q[1];
+      const __m512i rotation =
+          _mm512_add_epi64(_mm512_set1_epi64(q[2]), Indices(0, 1, 2, 3, 4, 5, 6, 7));
+      incoming_x =
+          _mm512_add_pd(incoming_x, _mm512_permutex2var_pd(_mm512_loadu_pd(first_column), rotation,
+                                                           _mm512_loadu_pd(second_column)));
+      incoming_y = _mm512_add_pd(incoming_y,
+                                 _mm512_permutex2var_pd(_mm512_loadu_pd(first_column + 8), rotation,
+                                                        _mm512_loadu_pd(second_column + 8)));
+      incoming_z = _mm512_add_pd(
+          incoming_z, _mm512_permutex2var_pd(_mm512_loadu_pd(first_column + 16), rotation,
+                                             _mm512_loadu_pd(second_column + 16)));
     }
     const auto incoming_end = static_cast<size_t>(p.incoming_start[slice + 1]);
     for (size_t c = rotated_end; c < incoming_end; ++c) {
       const int32_t* const q = p.incoming_slot + 8 * c;
       const __mmask8 lanes = p.incoming_lanes[c];
       const __m256i slot = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(q));
-      fx = _mm512_sub_pd(fx, Gather(lanes, slot, p.ring));
-      fy = _mm512_sub_pd(fy, Gather(lanes, slot, p.ring + 8));
-      fz = _mm512_sub_pd(fz, Gather(lanes, slot, p.ring + 16));
+      incoming_x = _mm512_add_pd(incoming_x, Gather(lanes, slot, p.ring));
+      incoming_y = _mm512_add_pd(incoming_y, Gather(lanes, slot, p.ring + 8));
+      incoming_z = _mm512_add_pd(incoming_z, Gather(lanes, slot, p.ring + 16));
     }
+    fx = _mm512_sub_pd(fx, incoming_x);
+    fy = _mm512_sub_pd(fy, incoming_y);
+    fz = _mm512_sub_pd(fz, incoming_z);
     __m512d sum[3];
     Interleave(fx, fy, fz, &sum[0], &sum[1], &sum[2]);
     if (!p.integrate) {
