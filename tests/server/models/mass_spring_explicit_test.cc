@@ -187,15 +187,21 @@ TEST(MassSpringExplicit, StructuredGridGivesThePlainForcesAndStep) {
   EXPECT_LT(RelativeDifference(scalar->velocities, fast->velocities), 1e-12);
 }
 
+// Raw constants for the stress graph: 30 N/m springs, 2 g nodes, damping ratio 0.4.
+MassSpringParameters StressGraphParameters() {
+  MassSpringParameters p;
+  p.spring_stiffness = 30.0;  // [N/m]
+  p.node_mass = 0.002;        // [kg]
+  p.damping_ratio = 0.4;
+  return p;
+}
+
 // One explicit step with every input (gravity, external forces, a grasp, fixed and prescribed
 // nodes, massless nodes from a sparse surface) through both passes, against seed 002 eq. 4–5
 // written out: v += dt (f/m + g), x += dt v.
 TEST(MassSpringExplicit, AvxAndScalarStepsAgreeWithTheFormula) {
   const Graph g = StressGraph();
-  MassSpringParameters p;
-  p.spring_stiffness = 30.0;
-  p.node_mass = 0.002;
-  p.damping_ratio = 0.4;
+  const MassSpringParameters p = StressGraphParameters();
   const auto model = MassSpringModel::FromEdges(g.rest, g.edges, p);
   const int32_t n = model->num_nodes();
   const auto fast = model->MakeState();
@@ -246,11 +252,7 @@ TEST(MassSpringExplicit, ThePassChecksWhatStepWouldCheckOnBothPaths) {
   // must still reject the step, one just under it must not, and a non-finite force must reject
   // it; each rejection restores the state the step started from, bit for bit.
   const Graph g = StressGraph();
-  MassSpringParameters p;
-  p.spring_stiffness = 30.0;
-  p.node_mass = 0.002;
-  p.damping_ratio = 0.4;
-  const auto model = MassSpringModel::FromEdges(g.rest, g.edges, p);
+  const auto model = MassSpringModel::FromEdges(g.rest, g.edges, StressGraphParameters());
   for (const bool avx : {true, false}) {
     SCOPED_TRACE(avx ? "AVX-512 pass (where the CPU has it)" : "scalar pass");
     std::optional<ScalarPass> scalar_pass;
