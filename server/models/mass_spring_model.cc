@@ -73,12 +73,10 @@ struct SlicePass {
   // (k [N/m], d [N s/m] interleaved; pair 0 is (0, 0): empty lanes and cut springs).
   const uint16_t* material;  // 8 per column
   const double* material_kd;
-  const uint8_t* consecutive;        // 1 per column: other nodes b, b + 1, ..., b + 7
   const int32_t* gathered_column;    // num_slices: the first column not consecutive
   const int32_t* incoming_start;     // num_slices + 1
   const int32_t* incoming_slot;      // 8 per incoming column
   const uint8_t* incoming_lanes;     // 1 per incoming column
-  const uint8_t* incoming_rotated;   // 1 per incoming column
   const int32_t* gathered_incoming;  // num_slices: the first not rotated incoming column
   double* ring;                      // [N], 24 per column, ring_mask + 1 columns
   size_t ring_mask;
@@ -154,13 +152,14 @@ PassCheck SlicePassScalar(const SlicePass& p) {
         }
       }
     }
+    const auto rotated_end = static_cast<size_t>(p.gathered_incoming[slice]);
     for (auto c = static_cast<size_t>(p.incoming_start[slice]);
          c < static_cast<size_t>(p.incoming_start[slice + 1]); ++c) {
       for (size_t lane = 0; lane < 8; ++lane) {
         if (((p.incoming_lanes[c] >> lane) & 1U) == 0) continue;
         const int32_t* const q = p.incoming_slot + 8 * c;
         auto slot = static_cast<size_t>(q[lane]);
-        if (p.incoming_rotated[c] != 0) {  // lanes r.. of column q[0], then lanes 0.. of q[1]
+        if (c < rotated_end) {  // lanes r.. of column q[0], then lanes 0.. of q[1]
           const auto r = static_cast<size_t>(q[2]);
           slot = r + lane < 8 ? static_cast<size_t>(q[0]) + r + lane
                               : static_cast<size_t>(q[1]) + r + lane - 8;
@@ -298,12 +297,14 @@ SOMASIM_MSS_TARGET __attribute__((always_inline)) inline void SpringColumn(
 }
 
 // SlicePassScalar, the 8 nodes of a slice in the 8 lanes: the lanes' own x and v are loaded
-// once per slice and their forces summed in registers; each column gathers the other nodes'
-// x and v and scatters -F into `pending` (a column's other nodes are distinct, so the scatter
-// loses nothing); 1/l comes from rsqrt14 and a third-order correction instead of a square root
-// and a division, which would bound the throughput, and the force is t (x_b - x_a) with the
-// scale t = F/l, so the unit vector is never formed. The slice's integration runs on the flat
-// values, 24 at a time. Results differ from the scalar pass by rounding only.
+// once per slice and their forces summed in registers; each column loads the other nodes' x
+// and v (24 consecutive values, transposed) or gathers them, and stores its forces in the ring
+// of columns, whence later slices take -F (the consecutive and the rotated incoming columns
+// first, each kind in a loop of its own: no branch per column); 1/l comes from rsqrt14 and a
+// third-order correction instead of a square root and a division, which would bound the throughput,
+// and the force is t (x_b - x_a) with the scale t = F/l, so the unit vector is never formed. The
+// slice's integration runs on the flat values, 24 at a time. Results differ from the scalar pass by
+// rounding only.
 SOMASIM_MSS_TARGET PassCheck SlicePassAvx512(const SlicePass& pass) {
   // Local copies: the scatters could alias `pass` as far as the compiler knows.
   const SlicePass p = pass;
@@ -667,7 +668,6 @@ void MassSpringModel::BuildExplicitLayout() {
   column_other3_.clear();
   column_rest_.clear();
   column_lanes_.clear();
-  column_consecutive_.clear();
   spring_slot_.assign(m, 0);
   slice_gathered_column_.clear();
   struct OutgoingColumn {
@@ -721,7 +721,6 @@ void MassSpringModel::BuildExplicitLayout() {
       }
       column_other3_.insert(column_other3_.end(), column.other.begin(), column.other.end());
       column_lanes_.push_back(column.lanes);
-      column_consecutive_.push_back(column.consecutive ? 1 : 0);
     }
     if (slice_gathered_column_.size() == slice) {
       slice_gathered_column_.push_back(static_cast<int32_t>(column_lanes_.size()));
@@ -751,7 +750,6 @@ void MassSpringModel::BuildExplicitLayout() {
   slice_incoming_start_.assign(1, 0);
   incoming_slot_.clear();
   incoming_lanes_.clear();
-  incoming_rotated_.clear();
   slice_gathered_incoming_.clear();
   struct IncomingColumn {
     std::array<int32_t, 8> slot;
@@ -773,8 +771,8 @@ void MassSpringModel::BuildExplicitLayout() {
         lanes = static_cast<uint8_t>(lanes | (1U << (node - first)));
       }
       // Lanes 0..7 reading lanes r..7 of one column and then lanes 0..r-1 of another (common
-      // in structured meshes): the pass loads both incoming_columns and rotates them instead of
-      // gathering; the slots then hold the two incoming_columns' ring indices and r.
+      // in structured meshes): the pass loads both columns and rotates them instead of
+      // gathering; the slots then hold the two columns' ring indices and r.
       const int32_t r = slot[0] % 24;
       bool rotated = lanes == 0xFF && r < 8;
       for (int32_t l = 1; l < 8 && rotated; ++l) {
@@ -789,7 +787,7 @@ void MassSpringModel::BuildExplicitLayout() {
       }
       incoming_columns.push_back({slot, lanes, rotated});
     }
-    // The rotated incoming_columns first, then the gathered ones: the pass takes each kind in a
+    // The rotated columns first, then the gathered ones: the pass takes each kind in a
     // loop of its own, with no branch per column.
     std::stable_partition(incoming_columns.begin(), incoming_columns.end(),
                           [](const IncomingColumn& column) { return column.rotated; });
@@ -799,7 +797,6 @@ void MassSpringModel::BuildExplicitLayout() {
       }
       incoming_slot_.insert(incoming_slot_.end(), column.slot.begin(), column.slot.end());
       incoming_lanes_.push_back(column.lanes);
-      incoming_rotated_.push_back(column.rotated ? 1 : 0);
     }
     if (slice_gathered_incoming_.size() == slice) {
       slice_gathered_incoming_.push_back(static_cast<int32_t>(incoming_lanes_.size()));
@@ -874,12 +871,10 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   pass.rest = column_rest_.data();
   pass.lanes = column_lanes_.data();
   SetSpringConstants(ms, material_kd_, &pass);
-  pass.consecutive = column_consecutive_.data();
   pass.gathered_column = slice_gathered_column_.data();
   pass.incoming_start = slice_incoming_start_.data();
   pass.incoming_slot = incoming_slot_.data();
   pass.incoming_lanes = incoming_lanes_.data();
-  pass.incoming_rotated = incoming_rotated_.data();
   pass.gathered_incoming = slice_gathered_incoming_.data();
   pass.ring = ms.column_forces.data();
   pass.ring_mask = static_cast<size_t>(ring_columns_) - 1;
@@ -949,12 +944,10 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.rest = column_rest_.data();
   pass.lanes = column_lanes_.data();
   SetSpringConstants(*state, material_kd_, &pass);
-  pass.consecutive = column_consecutive_.data();
   pass.gathered_column = slice_gathered_column_.data();
   pass.incoming_start = slice_incoming_start_.data();
   pass.incoming_slot = incoming_slot_.data();
   pass.incoming_lanes = incoming_lanes_.data();
-  pass.incoming_rotated = incoming_rotated_.data();
   pass.gathered_incoming = slice_gathered_incoming_.data();
   pass.ring = state->column_forces.data();
   pass.ring_mask = static_cast<size_t>(ring_columns_) - 1;
@@ -966,8 +959,7 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.gravity[0] = inputs.gravity.x();
   pass.gravity[1] = inputs.gravity.y();
   pass.gravity[2] = inputs.gravity.z();
-  // Every node faster than the limit has a component above limit/√3 (Step's test).
-  pass.component_limit = speed_limit() / std::sqrt(3.0);
+  pass.component_limit = component_speed_limit();
   const PassCheck check = RunSlicePass(pass);
   ApplyFixedAndPrescribed(inputs, state);
   // ChecksStateItself: the pass checked every value it wrote, but fixed and prescribed nodes

@@ -154,9 +154,8 @@ class MassSpringModel final : public TissueModel {
   std::vector<int32_t> column_other3_;       // 8 per column: 3 × the lane's other node (0: empty)
   std::vector<double> column_rest_;          // [m], 8 per column: l0 (0: empty)
   std::vector<uint8_t> column_lanes_;        // 1 per column: bit l set when lane l has a spring
-  std::vector<uint8_t> column_consecutive_;  // 1 per column: 1 if its other nodes are b..b + 7
-  // num_slices: each slice's first column that is not consecutive (the consecutive ones come
-  // first in a slice).
+  // num_slices: each slice's first column that is not consecutive (other nodes b..b + 7: those
+  // come first in a slice).
   std::vector<int32_t> slice_gathered_column_;
   std::vector<int32_t> spring_slot_;  // num_springs: 8 × column + lane of each spring
   // When the springs share few (k, d) pairs (BuildExplicitLayout decides): the pairs (k [N/m],
@@ -173,9 +172,8 @@ class MassSpringModel final : public TissueModel {
   std::vector<int32_t> slice_incoming_start_;  // num_slices + 1: incoming columns of each slice
   std::vector<int32_t> incoming_slot_;         // 8 per incoming column: ring index of the x
   std::vector<uint8_t> incoming_lanes_;        // 1 per incoming column: lanes with a spring
-  std::vector<uint8_t> incoming_rotated_;      // 1 per incoming column: 1 if two rotated columns
-  // num_slices: each slice's first incoming column that is not rotated (the rotated ones come
-  // first in a slice).
+  // num_slices: each slice's first incoming column that is not rotated (lanes r..7 of one ring
+  // column and lanes 0..r-1 of another: those come first in a slice).
   std::vector<int32_t> slice_gathered_incoming_;
   // --- end of explicit-step data ---
   // --- implicit-step data (mass_spring_implicit.cc) ---

@@ -145,7 +145,7 @@ void TissueModel::InitialiseState(const mesh::Points& rest, TissueState* state) 
 void TissueModel::CheckWholeState(TissueState* state) const {
   const FlatCheck flat =
       CheckState(state->positions.data(), state->velocities.data(),
-                 static_cast<size_t>(state->positions.size()), speed_limit_ / std::sqrt(3.0));
+                 static_cast<size_t>(state->positions.size()), component_speed_limit());
   SetStateChecked(state, flat.non_finite, flat.maybe_too_fast);
 }
 
@@ -186,7 +186,7 @@ StepStatus TissueModel::Step(const StepInputs& inputs, TissueState* state) const
   const double* v = state->velocities.data();
   const FlatCheck flat = ChecksStateItself()
                              ? FlatCheck{state->checked_non_finite_, state->checked_maybe_too_fast_}
-                             : CheckState(x, v, count, speed_limit_ / std::sqrt(3.0));
+                             : CheckState(x, v, count, component_speed_limit());
   const bool non_finite = flat.non_finite;
   bool too_fast = false;
   if (flat.maybe_too_fast && !non_finite) {

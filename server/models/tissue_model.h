@@ -9,6 +9,7 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cmath>
 #include <cstdint>
 #include <memory>
 #include <span>
@@ -149,6 +150,9 @@ class TissueModel {
     state->checked_non_finite_ = non_finite;
     state->checked_maybe_too_fast_ = maybe_too_fast;
   }
+  // The velocity component above which Step measures a node's speed [m/s]: every node faster
+  // than speed_limit() has a component above speed_limit() / √3.
+  double component_speed_limit() const { return speed_limit_ / std::sqrt(3.0); }
   // Step's own check of every position and velocity, setting the same flags: the fallback of a
   // model that checks itself when its own check cannot answer for the final state.
   void CheckWholeState(TissueState* state) const;
