@@ -4,17 +4,21 @@
 //  - every spring belongs to the lane of its end in the earlier slice (either end when both
 //    share a slice: the less loaded one) and sits in one column of that slice (8 lanes, at most
 //    one spring each). A lane's own x and v are loaded once per slice and its forces summed in
-//    a register; the other ends' x and v are gathered, or loaded as 24 consecutive values when
-//    they are 8 consecutive nodes (most columns of a structured numbering: 85 % on the grid,
-//    54 % on gallbladder5400).
-//  - each column stores its 8 forces F (3 vector stores) into a ring of recent columns; each
-//    slice then subtracts the forces of the springs ending on its nodes, gathered from the ring
-//    by precomputed slots ("incoming columns"), or, when the 8 lanes read one column's lanes
-//    r..7 and the next source column's lanes 0..r-1 (again most of a structured mesh), with two
-//    loads and a permute. No read-modify-write of shared memory: the old pass's scalar scatter
-//    `pending[j] -= F` and its per-node bookkeeping (a mispredicted branch per node) are gone.
-//    The ring (a power of two of columns, sized in Build so that no column is overwritten
-//    before its last reader's slice) stays in L1/L2 however large the mesh.
+//    a register. A "run" column holds the slice's springs of one offset Δ = other node − lane
+//    node (an edge kind of a structured numbering; lanes without one stay empty): the other
+//    ends are 8 consecutive nodes, whose x and v are loaded as 24 consecutive values; the other
+//    springs sit in gathered columns, whose other ends' x and v are gathered. Runs are 99.99 %
+//    of the columns on the 53³ grid and 94 % on gallbladder5400 (how many lanes a run needs is
+//    chosen per slice, BuildExplicitLayout).
+//  - each column stores its 8 forces F (3 vector stores, 0 in empty lanes) into a ring of
+//    recent columns; each slice then subtracts the forces of the springs ending on its nodes
+//    ("incoming columns"). Those of one Δ start in lanes r..7 of one run column and lanes
+//    0..r-1 of the next slice's (r = -Δ mod 8): two loads and a permute, lanes without such a
+//    spring reading an empty lane or the ring's zero column. The rest are gathered from the
+//    ring by precomputed slots. No read-modify-write of shared memory: the old pass's scalar
+//    scatter `pending[j] -= F` and its per-node bookkeeping (a mispredicted branch per node)
+//    are gone. The ring (a power of two of columns, sized in Build so that no column is
+//    overwritten before its last reader's slice) stays in L1/L2 however large the mesh.
 //  - when a slice's columns are done, every spring touching its nodes is done too (springs that
 //    end in a slice start in it or in an earlier one), and no later spring reads them (later
 //    springs start in later slices and end beyond their start), so the slice's 8 nodes are
@@ -26,20 +30,25 @@
 //    (ChecksStateItself), so Step makes no second pass over them.
 //  - per spring the pass streams about 32 bytes (other node, l0, k, d, incoming slot); k and d
 //    live in the state in the column layout (MakeState fills and Cut zeroes both copies). When
-//    the springs share few exact (k, d) pairs (a structured mesh: 2,103 pairs for the 1M springs
-//    of a 53³ grid), the state keeps instead a 2-byte index per spring into the model's table of
-//    pairs (pair 0 is (0, 0): Cut just sets the index to 0), gathered from L1/L2: 18 bytes per
-//    spring instead of 32 of the pass's traffic, which is what bounds it on large meshes.
+//    the springs share few exact (k, d) pairs (a structured mesh: 21 pairs for the 1M springs
+//    of a 53³ grid, once Build has merged constants that differ by rounding only), the state
+//    keeps instead a 2-byte index per spring into the model's table of pairs (pair 0 is (0, 0):
+//    Cut just sets the index to 0), gathered from L1/L2: 18 bytes per spring instead of 32 of
+//    the pass's traffic. A column whose springs share one pair (82 % of the grid's) has it
+//    broadcast instead of gathered.
 //  - without anchors or grasps nothing is added to a node's force before the pass, which then
 //    neither reads nor clears `pending` (48 bytes per node less).
 #include "server/models/mass_spring_model.h"
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <cassert>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "server/models/cpu_features.h"
@@ -73,6 +82,9 @@ struct SlicePass {
   // (k [N/m], d [N s/m] interleaved; pair 0 is (0, 0): empty lanes and cut springs).
   const uint16_t* material;  // 8 per column
   const double* material_kd;
+  // With `material`: per column, the one pair of all its springs (cut ones aside: index 0 in
+  // `material`), or 0 when they have several.
+  const uint16_t* column_pair;
   const int32_t* gathered_column;    // num_slices: the first column not consecutive
   const int32_t* incoming_start;     // num_slices + 1
   const int32_t* incoming_slot;      // 8 per incoming column
@@ -269,12 +281,20 @@ SOMASIM_MSS_TARGET __attribute__((always_inline)) inline void SpringColumn(
   __m512d k, d;
   if (p.material != nullptr) {
     // 2 bytes per spring instead of 16: the pairs' table stays in L1/L2.
-    const __m256i pair = _mm256_slli_epi32(
-        _mm256_cvtepu16_epi32(
-            _mm_loadu_si128(reinterpret_cast<const __m128i*>(p.material + 8 * c))),
-        1);
-    k = Gather(lanes, pair, p.material_kd);
-    d = Gather(lanes, pair, p.material_kd + 1);
+    const __m128i index = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p.material + 8 * c));
+    const size_t uniform = p.column_pair[c];
+    if (uniform != 0) {
+      // One pair for the whole column (most of a structured mesh): two broadcasts instead of
+      // two gathers, on the lanes whose spring is not cut (index 0).
+      const __m512i wide = _mm512_maskz_cvtepu16_epi64(0xFF, index);
+      const __mmask8 alive = _mm512_test_epi64_mask(wide, wide);
+      k = _mm512_maskz_mov_pd(alive, _mm512_set1_pd(p.material_kd[2 * uniform]));
+      d = _mm512_maskz_mov_pd(alive, _mm512_set1_pd(p.material_kd[2 * uniform + 1]));
+    } else {
+      const __m256i pair = _mm256_slli_epi32(_mm256_cvtepu16_epi32(index), 1);
+      k = Gather(lanes, pair, p.material_kd);
+      d = Gather(lanes, pair, p.material_kd + 1);
+    }
   } else {
     k = _mm512_loadu_pd(p.stiffness_damping + 16 * c);
     d = _mm512_loadu_pd(p.stiffness_damping + 16 * c + 8);
@@ -282,11 +302,12 @@ SOMASIM_MSS_TARGET __attribute__((always_inline)) inline void SpringColumn(
   // F = t (x_b - x_a) with t = (k (l - l0) + d closing) / l = k - k l0 / l + d (dv · Δx) /
   // l²: the unit vector is never formed, and k l0 and d (dv · Δx) are ready before 1/l.
   const __m512d kl0 = _mm512_mul_pd(k, _mm512_loadu_pd(p.rest + 8 * c));
-  const __m512d t = _mm512_maskz_fmadd_pd(has_direction, _mm512_mul_pd(d, closing_l),
-                                          _mm512_mul_pd(inv, inv), _mm512_fnmadd_pd(kl0, inv, k));
-  const __m512d sx = _mm512_mul_pd(t, dx);
-  const __m512d sy = _mm512_mul_pd(t, dy);
-  const __m512d sz = _mm512_mul_pd(t, dz);
+  // F = 0 off has_direction: exactly 0 for lanes without a spring, whatever their x and v.
+  const __m512d t = _mm512_fmadd_pd(_mm512_mul_pd(d, closing_l), _mm512_mul_pd(inv, inv),
+                                    _mm512_fnmadd_pd(kl0, inv, k));
+  const __m512d sx = _mm512_maskz_mul_pd(has_direction, t, dx);
+  const __m512d sy = _mm512_maskz_mul_pd(has_direction, t, dy);
+  const __m512d sz = _mm512_maskz_mul_pd(has_direction, t, dz);
   *fx = _mm512_add_pd(*fx, sx);
   *fy = _mm512_add_pd(*fy, sy);
   *fz = _mm512_add_pd(*fz, sz);
@@ -344,7 +365,7 @@ SOMASIM_MSS_TARGET PassCheck SlicePassAvx512(const SlicePass& pass) {
                    &other.y, &other.z);
       Deinterleave(_mm512_loadu_pd(vo), _mm512_loadu_pd(vo + 8), _mm512_loadu_pd(vo + 16),
                    &other.vx, &other.vy, &other.vz);
-      SpringColumn(p, c, 0xFF, own, other, &fx, &fy, &fz);
+      SpringColumn(p, c, p.lanes[c], own, other, &fx, &fy, &fz);
     }
     const auto columns_end = static_cast<size_t>(p.column_start[slice + 1]);
     for (size_t c = gathered_start; c < columns_end; ++c) {
@@ -447,12 +468,35 @@ PassCheck RunSlicePass(const SlicePass& p) {
 
 // Points the pass at the state's spring constants in whichever form it holds them.
 void SetSpringConstants(const MassSpringState& state, const std::vector<double>& material_kd,
-                        SlicePass* pass) {
+                        const std::vector<uint16_t>& column_pair, SlicePass* pass) {
   if (!state.column_material.empty()) {
     pass->material = state.column_material.data();
     pass->material_kd = material_kd.data();
+    pass->column_pair = column_pair.data();
   } else {
     pass->stiffness_damping = state.column_stiffness_damping.data();
+  }
+}
+
+// Values (>= 0) that agree to kMergeTolerance relative become one: each group of values sorted
+// within the tolerance of its least takes that least. Rounding makes the constants of congruent
+// springs differ in their last bits (the 53³ grid: 2,103 distinct (k, d) pairs, 20 once merged),
+// which would keep the explicit pass from treating a column of them as one material; 1e-12 of a
+// tissue's stiffness is far below anything measured of it.
+constexpr double kMergeTolerance = 1e-12;
+void MergeNearlyEqual(std::vector<double>* values) {
+  std::vector<size_t> order(values->size());
+  for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::sort(order.begin(), order.end(),
+            [&](size_t a, size_t b) { return (*values)[a] < (*values)[b]; });
+  for (size_t b = 0; b < order.size();) {
+    const double least = (*values)[order[b]];
+    size_t e = b + 1;
+    while (e < order.size() && (*values)[order[e]] <= least + kMergeTolerance * least) {
+      (*values)[order[e]] = least;
+      ++e;
+    }
+    b = e;
   }
 }
 
@@ -596,6 +640,8 @@ void MassSpringModel::Build(const mesh::Points& rest,
     const double reduced = mi + mj > 0.0 ? mi * mj / (mi + mj) : 0.0;
     damping_[s] = 2.0 * p.damping_ratio * std::sqrt(stiffness_[s] * reduced);
   }
+  MergeNearlyEqual(&stiffness_);
+  MergeNearlyEqual(&damping_);
   // Springs come sorted by (i, j): the springs whose first node is i are one run.
   first_node_start_.assign(n + 1, 0);
   for (size_t s = 0; s < m; ++s) ++first_node_start_[static_cast<size_t>(spring_i_[s]) + 1];
@@ -663,149 +709,269 @@ void MassSpringModel::BuildExplicitLayout() {
   std::vector<size_t> by_node(m);
   std::vector<size_t> fill(start.begin(), start.end() - 1);
   for (size_t s = 0; s < m; ++s) by_node[fill[static_cast<size_t>(lane_node[s])]++] = s;
-  // Outgoing columns: column k of a slice holds the k-th spring of each lane.
+  // Outgoing columns. A slice's springs with one offset Δ = other node − lane node (an edge kind
+  // of a structured mesh) go into one run column when enough of its lanes have one: lane l's
+  // other node is then 8 slice + l + Δ, and the pass loads the 8 other nodes' x and v as 24
+  // consecutive values each instead of gathering them; lanes without such a spring hold none
+  // (the pass stores F = 0 for them). The slice's other springs go into gathered columns,
+  // column k holding each lane's k-th. How many lanes a run column needs is chosen per slice:
+  // the least that costs the pass least (a gathered column costs kGatheredColumnCost run
+  // columns).
   slice_column_start_.assign(1, 0);
   column_other3_.clear();
   column_rest_.clear();
   column_lanes_.clear();
   spring_slot_.assign(m, 0);
   slice_gathered_column_.clear();
-  struct OutgoingColumn {
-    std::array<size_t, 8> spring;  // m: an empty lane
-    std::array<int32_t, 8> other;
-    uint8_t lanes;
-    bool consecutive;
+  constexpr int64_t kNotInRun = std::numeric_limits<int64_t>::min();
+  std::vector<int64_t> run_offset(m, kNotInRun);  // Δ of each spring in a run column
+  // Each slice's run columns as (Δ, column), for the incoming columns below.
+  std::vector<std::vector<std::pair<int64_t, int32_t>>> slice_runs(num_slices);
+  const auto emit_column = [&](const std::array<size_t, 8>& spring,
+                               const std::array<int32_t, 8>& other3, uint8_t lanes) {
+    const auto index = static_cast<int32_t>(column_lanes_.size());
+    for (size_t lane = 0; lane < 8; ++lane) {
+      const size_t s = spring[lane];
+      column_rest_.push_back(s < m ? rest_length_[s] : 0.0);
+      if (s < m) spring_slot_[s] = 8 * index + static_cast<int32_t>(lane);
+    }
+    column_other3_.insert(column_other3_.end(), other3.begin(), other3.end());
+    column_lanes_.push_back(lanes);
+    return index;
   };
-  std::vector<OutgoingColumn> columns;
+  struct Candidate {
+    int64_t offset;  // Δ
+    size_t lane;
+    size_t spring;
+  };
+  struct Run {  // the candidates [begin, end) of one Δ
+    size_t begin, end;
+    uint8_t lanes;  // lanes with a spring of this Δ (their first one when a lane has two)
+    int lane_count;
+    bool loadable;  // the 8 other nodes 8 slice + Δ .. + 7 exist
+  };
+  std::vector<Candidate> candidates;
+  std::vector<Run> runs;
+  std::array<std::vector<size_t>, 8> rest_of_lane;
   for (size_t slice = 0; slice < num_slices; ++slice) {
     const size_t first = 8 * slice, last = std::min(n, first + 8);
-    size_t width = 0;
-    for (size_t node = first; node < last; ++node)
-      width = std::max(width, start[node + 1] - start[node]);
-    columns.clear();
-    for (size_t k = 0; k < width; ++k) {
-      OutgoingColumn column{};
-      column.spring.fill(m);
-      for (size_t node = first; node < last; ++node) {
-        if (start[node] + k >= start[node + 1]) continue;
-        const size_t lane = node - first;
-        const size_t s = by_node[start[node] + k];
-        column.spring[lane] = s;
-        column.other[lane] =
-            3 * (spring_i_[s] == static_cast<int32_t>(node) ? spring_j_[s] : spring_i_[s]);
-        column.lanes = static_cast<uint8_t>(column.lanes | (1U << lane));
+    candidates.clear();
+    for (size_t node = first; node < last; ++node) {
+      for (size_t k = start[node]; k < start[node + 1]; ++k) {
+        const size_t s = by_node[k];
+        const int32_t other =
+            spring_i_[s] == static_cast<int32_t>(node) ? spring_j_[s] : spring_i_[s];
+        candidates.push_back({int64_t{other} - static_cast<int64_t>(node), node - first, s});
       }
-      // Other nodes b, b + 1, ..., b + 7 in the 8 lanes (common in structured meshes): the pass
-      // loads their x and v as 24 consecutive values instead of gathering them.
-      const std::array<int32_t, 8>& other = column.other;
-      column.consecutive = column.lanes == 0xFF && static_cast<size_t>(other[0]) + 24 <= 3 * n;
-      for (size_t l = 1; l < 8; ++l) {
-        column.consecutive =
-            column.consecutive && other[l] == other[0] + 3 * static_cast<int32_t>(l);
-      }
-      columns.push_back(column);
     }
-    // The consecutive columns first, then the gathered ones: the pass takes each kind in a loop
-    // of its own, with no branch per column.
-    std::stable_partition(columns.begin(), columns.end(),
-                          [](const OutgoingColumn& column) { return column.consecutive; });
-    for (const OutgoingColumn& column : columns) {
-      const auto index = static_cast<int32_t>(column_lanes_.size());
-      if (!column.consecutive && slice_gathered_column_.size() == slice) {
-        slice_gathered_column_.push_back(index);
+    // By Δ; within one Δ by lane, and a lane's springs in canonical order.
+    std::stable_sort(candidates.begin(), candidates.end(),
+                     [](const Candidate& a, const Candidate& b) { return a.offset < b.offset; });
+    runs.clear();
+    for (size_t b = 0; b < candidates.size();) {
+      size_t e = b;
+      Run run{b, b, 0, 0, false};
+      while (e < candidates.size() && candidates[e].offset == candidates[b].offset) {
+        run.lanes = static_cast<uint8_t>(run.lanes | (1U << candidates[e].lane));
+        ++e;
       }
+      run.end = e;
+      run.lane_count = std::popcount(run.lanes);
+      const int64_t window = static_cast<int64_t>(first) + candidates[b].offset;
+      run.loadable = window >= 0 && window + 8 <= static_cast<int64_t>(n);
+      runs.push_back(run);
+      b = e;
+    }
+    // The threshold: the number of run columns plus kGatheredColumnCost × the widest lane's
+    // springs left for gathered columns, least over 1..8 lanes.
+    int best_threshold = 9;
+    double best_cost = std::numeric_limits<double>::infinity();
+    for (int threshold = 1; threshold <= 8; ++threshold) {
+      std::array<size_t, 8> left{};
+      size_t run_columns = 0;
+      for (const Run& run : runs) {
+        const bool taken = run.loadable && run.lane_count >= threshold;
+        run_columns += taken ? 1 : 0;
+        for (size_t c = run.begin; c < run.end; ++c) ++left[candidates[c].lane];
+        if (taken) {
+          for (size_t lane = 0; lane < 8; ++lane) left[lane] -= (run.lanes >> lane) & 1U;
+        }
+      }
+      const double cost =
+          static_cast<double>(run_columns) +
+          kGatheredColumnCost * static_cast<double>(*std::max_element(left.begin(), left.end()));
+      if (cost < best_cost) {
+        best_cost = cost;
+        best_threshold = threshold;
+      }
+    }
+    for (const Run& run : runs) {
+      if (!run.loadable || run.lane_count < best_threshold) continue;
+      std::array<size_t, 8> spring;
+      spring.fill(m);
+      std::array<int32_t, 8> other3{};
+      const int64_t offset = candidates[run.begin].offset;
       for (size_t lane = 0; lane < 8; ++lane) {
-        const size_t s = column.spring[lane];
-        column_rest_.push_back(s < m ? rest_length_[s] : 0.0);
-        if (s < m) spring_slot_[s] = 8 * index + static_cast<int32_t>(lane);
+        other3[lane] = static_cast<int32_t>(3 * (static_cast<int64_t>(first + lane) + offset));
       }
-      column_other3_.insert(column_other3_.end(), column.other.begin(), column.other.end());
-      column_lanes_.push_back(column.lanes);
+      for (size_t c = run.begin; c < run.end; ++c) {
+        if (spring[candidates[c].lane] != m) continue;  // a lane's second spring of this Δ
+        spring[candidates[c].lane] = candidates[c].spring;
+        run_offset[candidates[c].spring] = offset;
+      }
+      slice_runs[slice].emplace_back(offset, emit_column(spring, other3, run.lanes));
     }
-    if (slice_gathered_column_.size() == slice) {
-      slice_gathered_column_.push_back(static_cast<int32_t>(column_lanes_.size()));
+    slice_gathered_column_.push_back(static_cast<int32_t>(column_lanes_.size()));
+    size_t width = 0;
+    for (size_t node = first; node < last; ++node) {
+      std::vector<size_t>& rest = rest_of_lane[node - first];
+      rest.clear();
+      for (size_t k = start[node]; k < start[node + 1]; ++k) {
+        if (run_offset[by_node[k]] == kNotInRun) rest.push_back(by_node[k]);
+      }
+      width = std::max(width, rest.size());
+    }
+    for (size_t k = 0; k < width; ++k) {
+      std::array<size_t, 8> spring;
+      spring.fill(m);
+      std::array<int32_t, 8> other3{};
+      uint8_t lanes = 0;
+      for (size_t lane = 0; lane < last - first; ++lane) {
+        if (k >= rest_of_lane[lane].size()) continue;
+        const size_t s = rest_of_lane[lane][k];
+        spring[lane] = s;
+        other3[lane] =
+            3 * (spring_i_[s] == static_cast<int32_t>(first + lane) ? spring_j_[s] : spring_i_[s]);
+        lanes = static_cast<uint8_t>(lanes | (1U << lane));
+      }
+      emit_column(spring, other3, lanes);
     }
     slice_column_start_.push_back(static_cast<int32_t>(column_lanes_.size()));
   }
-  // The ring of column forces: column c's forces are read at the end of the slices of its other
-  // nodes, before column c + ring_columns_ overwrites them.
-  size_t reach = 1;
-  for (size_t s = 0; s < m; ++s) {
-    const auto column = static_cast<size_t>(spring_slot_[s] / 8);
-    const int32_t b = lane_node[s] == spring_i_[s] ? spring_j_[s] : spring_i_[s];
-    const auto end = static_cast<size_t>(slice_column_start_[static_cast<size_t>(b) / 8 + 1]);
-    reach = std::max(reach, end - column);
-  }
-  size_t ring = 1;
-  while (ring < reach) ring *= 2;
-  ring_columns_ = static_cast<int32_t>(ring);
-  // Incoming columns: column k of a slice holds, for each lane, the ring place of the k-th
-  // spring whose other node the lane is.
-  std::vector<std::vector<int32_t>> incoming(n);
+  // Incoming columns: a slice's nodes take -F of the springs ending on them. For each Δ of run
+  // columns, one rotated column: lane l's spring of that Δ starts at node 8 slice + l - Δ =
+  // 8 s_a + r + l, in lane r + l of the Δ run column of slice s_a (l < 8 - r), or lane
+  // r + l - 8 of that of slice s_a + 1; the pass loads both columns' forces and rotates them.
+  // Lanes without such a spring read a lane the run column left empty (F = 0 there), or the
+  // ring's zero column where there is no run column (or one not yet computed: only a Δ < 0
+  // within one slice reads beyond it, and only empty lanes). The other springs ending on a lane
+  // are gathered from their ring places, column k holding each lane's k-th.
+  std::vector<std::vector<size_t>> incoming(n);
   for (size_t s = 0; s < m; ++s) {
     const int32_t b = lane_node[s] == spring_i_[s] ? spring_j_[s] : spring_i_[s];
-    const int32_t slot = spring_slot_[s];
-    incoming[static_cast<size_t>(b)].push_back(24 * ((slot / 8) % ring_columns_) + slot % 8);
+    incoming[static_cast<size_t>(b)].push_back(s);
   }
-  slice_incoming_start_.assign(1, 0);
-  incoming_slot_.clear();
-  incoming_lanes_.clear();
-  slice_gathered_incoming_.clear();
   struct IncomingColumn {
+    // Rotated: {column of lanes r.., column of lanes ..r-1, r} (-1: the zero column); gathered:
+    // each lane's 8 × column + lane.
     std::array<int32_t, 8> slot;
     uint8_t lanes;
     bool rotated;
   };
   std::vector<IncomingColumn> incoming_columns;
+  std::vector<size_t> incoming_column_start(1, 0);
+  std::vector<std::pair<int64_t, uint8_t>> rotated;  // Δ, lanes
+  const auto run_column = [&](int64_t slice, int64_t offset) {
+    if (slice < 0) return int32_t{-1};
+    for (const auto& [o, column] : slice_runs[static_cast<size_t>(slice)]) {
+      if (o == offset) return column;
+    }
+    return int32_t{-1};
+  };
   for (size_t slice = 0; slice < num_slices; ++slice) {
     const size_t first = 8 * slice, last = std::min(n, first + 8);
+    rotated.clear();
     size_t width = 0;
-    for (size_t node = first; node < last; ++node) width = std::max(width, incoming[node].size());
-    incoming_columns.clear();
-    for (size_t k = 0; k < width; ++k) {
-      std::array<int32_t, 8> slot{};
-      uint8_t lanes = 0;
-      for (size_t node = first; node < last; ++node) {
-        if (k >= incoming[node].size()) continue;
-        slot[node - first] = incoming[node][k];
-        lanes = static_cast<uint8_t>(lanes | (1U << (node - first)));
+    for (size_t node = first; node < last; ++node) {
+      std::vector<size_t>& rest = rest_of_lane[node - first];
+      rest.clear();
+      for (const size_t s : incoming[node]) {
+        if (run_offset[s] == kNotInRun) {
+          rest.push_back(s);
+          continue;
+        }
+        auto it = std::find_if(rotated.begin(), rotated.end(),
+                               [&](const auto& entry) { return entry.first == run_offset[s]; });
+        if (it == rotated.end()) it = rotated.insert(rotated.end(), {run_offset[s], uint8_t{0}});
+        it->second = static_cast<uint8_t>(it->second | (1U << (node - first)));
       }
-      // Lanes 0..7 reading lanes r..7 of one column and then lanes 0..r-1 of another (common
-      // in structured meshes): the pass loads both columns and rotates them instead of
-      // gathering; the slots then hold the two columns' ring indices and r.
-      const int32_t r = slot[0] % 24;
-      bool rotated = lanes == 0xFF && r < 8;
-      for (int32_t l = 1; l < 8 && rotated; ++l) {
-        const auto lane = static_cast<size_t>(l);
-        rotated = r + l < 8 ? slot[lane] == slot[0] + l
-                            : slot[lane] % 24 == r + l - 8 &&
-                                  slot[lane] - (r + l - 8) == slot[static_cast<size_t>(8 - r)];
-      }
-      if (rotated) {
-        const int32_t second = r == 0 ? slot[0] : slot[static_cast<size_t>(8 - r)];
-        slot = {slot[0] - r, second, r, 0, 0, 0, 0, 0};
-      }
-      incoming_columns.push_back({slot, lanes, rotated});
+      width = std::max(width, rest.size());
     }
-    // The rotated columns first, then the gathered ones: the pass takes each kind in a
-    // loop of its own, with no branch per column.
-    std::stable_partition(incoming_columns.begin(), incoming_columns.end(),
-                          [](const IncomingColumn& column) { return column.rotated; });
-    for (const IncomingColumn& column : incoming_columns) {
-      if (!column.rotated && slice_gathered_incoming_.size() == slice) {
-        slice_gathered_incoming_.push_back(static_cast<int32_t>(incoming_lanes_.size()));
+    std::sort(rotated.begin(), rotated.end());
+    for (const auto& [offset, lanes] : rotated) {
+      const int64_t source = static_cast<int64_t>(first) - offset;  // lane 0's start node
+      const int64_t source_slice = source >= 0 ? source / 8 : -((7 - source) / 8);
+      const auto r = static_cast<int32_t>(source - 8 * source_slice);
+      const int32_t a = source_slice <= static_cast<int64_t>(slice)
+                            ? run_column(source_slice, offset)
+                            : int32_t{-1};
+      const int32_t b = r == 0 ? a
+                        : source_slice + 1 <= static_cast<int64_t>(slice)
+                            ? run_column(source_slice + 1, offset)
+                            : int32_t{-1};
+      incoming_columns.push_back({{a, b, r, 0, 0, 0, 0, 0}, lanes, true});
+    }
+    for (size_t k = 0; k < width; ++k) {
+      IncomingColumn column{{}, 0, false};
+      for (size_t lane = 0; lane < last - first; ++lane) {
+        if (k >= rest_of_lane[lane].size()) continue;
+        column.slot[lane] = spring_slot_[rest_of_lane[lane][k]];
+        column.lanes = static_cast<uint8_t>(column.lanes | (1U << lane));
+      }
+      incoming_columns.push_back(column);
+    }
+    incoming_column_start.push_back(incoming_columns.size());
+  }
+  // The ring of column forces: every column an incoming column reads must not be overwritten
+  // before the end of the reading slice's columns.
+  size_t reach = 1;
+  for (size_t slice = 0; slice < num_slices; ++slice) {
+    const auto end = static_cast<int64_t>(slice_column_start_[slice + 1]);
+    for (size_t c = incoming_column_start[slice]; c < incoming_column_start[slice + 1]; ++c) {
+      const IncomingColumn& column = incoming_columns[c];
+      for (size_t lane = 0; lane < 8; ++lane) {
+        int64_t read = -1;
+        if (column.rotated) {
+          if (lane < 2) read = column.slot[lane];
+        } else if (((column.lanes >> lane) & 1U) != 0) {
+          read = column.slot[lane] / 8;
+        }
+        if (read >= 0) reach = std::max(reach, static_cast<size_t>(end - read));
+      }
+    }
+  }
+  size_t ring = 1;
+  while (ring < reach) ring *= 2;
+  ring_columns_ = static_cast<int32_t>(ring);
+  const auto ring_place = [&](int32_t column) {
+    return column < 0 ? 24 * ring_columns_ : 24 * (column % ring_columns_);
+  };
+  slice_incoming_start_.assign(1, 0);
+  incoming_slot_.clear();
+  incoming_lanes_.clear();
+  slice_gathered_incoming_.clear();
+  for (size_t slice = 0; slice < num_slices; ++slice) {
+    slice_gathered_incoming_.push_back(static_cast<int32_t>(incoming_column_start[slice]));
+    for (size_t c = incoming_column_start[slice]; c < incoming_column_start[slice + 1]; ++c) {
+      IncomingColumn column = incoming_columns[c];
+      if (column.rotated) {
+        column.slot[0] = ring_place(column.slot[0]);
+        column.slot[1] = ring_place(column.slot[1]);
+        ++slice_gathered_incoming_.back();
+      } else {
+        for (size_t lane = 0; lane < 8; ++lane) {
+          if (((column.lanes >> lane) & 1U) == 0) continue;
+          column.slot[lane] = ring_place(column.slot[lane] / 8) + column.slot[lane] % 8;
+        }
       }
       incoming_slot_.insert(incoming_slot_.end(), column.slot.begin(), column.slot.end());
       incoming_lanes_.push_back(column.lanes);
     }
-    if (slice_gathered_incoming_.size() == slice) {
-      slice_gathered_incoming_.push_back(static_cast<int32_t>(incoming_lanes_.size()));
-    }
     slice_incoming_start_.push_back(static_cast<int32_t>(incoming_lanes_.size()));
   }
-  // The distinct (k, d) pairs, exactly (no rounding): when each is shared by 8 springs or more
-  // on average (structured meshes: 2,103 pairs for the 1M springs of a 53³ grid) and the table
-  // stays small, the state keeps a 2-byte index per spring instead of k and d (16 bytes).
+  // The distinct (k, d) pairs, exactly (after MergeNearlyEqual): when each is shared by 8 springs
+  // or more on average (structured meshes: 20 pairs for the 1M springs of a 53³ grid) and the
+  // table stays small, the state keeps a 2-byte index per spring instead of k and d (16 bytes).
   std::vector<std::array<double, 2>> pairs;
   pairs.reserve(m + 1);
   pairs.push_back({0.0, 0.0});
@@ -814,6 +980,7 @@ void MassSpringModel::BuildExplicitLayout() {
   pairs.erase(std::unique(pairs.begin(), pairs.end()), pairs.end());
   material_kd_.clear();
   spring_material_.clear();
+  column_pair_.clear();
   if (pairs.size() <= kMaxMaterialPairs && 8 * pairs.size() <= m) {
     // Pair 0 must be (0, 0): stiffness and damping are >= 0, so it sorts first.
     assert(pairs[0][0] == 0.0 && pairs[0][1] == 0.0);
@@ -825,6 +992,18 @@ void MassSpringModel::BuildExplicitLayout() {
       spring_material_[s] =
           static_cast<uint16_t>(std::lower_bound(pairs.begin(), pairs.end(), pair) - pairs.begin());
     }
+    // Each column's one pair, or 0 (several pairs: the pass gathers them per lane). Pair 0 is
+    // only empty lanes' and cut springs': never a column's pair.
+    constexpr uint32_t kSeveral = 0x10000;
+    std::vector<uint32_t> column(column_lanes_.size(), 0);
+    for (size_t s = 0; s < m; ++s) {
+      uint32_t& pair = column[static_cast<size_t>(spring_slot_[s] / 8)];
+      pair = pair == 0 || pair == spring_material_[s] ? spring_material_[s] : kSeveral;
+    }
+    column_pair_.resize(column.size());
+    for (size_t c = 0; c < column.size(); ++c) {
+      column_pair_[c] = column[c] == kSeveral ? 0 : static_cast<uint16_t>(column[c]);
+    }
   }
 }
 
@@ -835,7 +1014,8 @@ std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
   state->forces = mesh::Points::Zero(3, n);
   state->stiffness = stiffness_;
   state->damping = damping_;
-  state->column_forces.assign(24 * static_cast<size_t>(ring_columns_), 0.0);
+  // The ring's columns and its zero column (never written).
+  state->column_forces.assign(24 * (static_cast<size_t>(ring_columns_) + 1), 0.0);
   if (!spring_material_.empty()) {
     state->column_material.assign(column_rest_.size(), 0);
     for (size_t s = 0; s < spring_slot_.size(); ++s) {
@@ -870,7 +1050,7 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   pass.other3 = column_other3_.data();
   pass.rest = column_rest_.data();
   pass.lanes = column_lanes_.data();
-  SetSpringConstants(ms, material_kd_, &pass);
+  SetSpringConstants(ms, material_kd_, column_pair_, &pass);
   pass.gathered_column = slice_gathered_column_.data();
   pass.incoming_start = slice_incoming_start_.data();
   pass.incoming_slot = incoming_slot_.data();
@@ -943,7 +1123,7 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.other3 = column_other3_.data();
   pass.rest = column_rest_.data();
   pass.lanes = column_lanes_.data();
-  SetSpringConstants(*state, material_kd_, &pass);
+  SetSpringConstants(*state, material_kd_, column_pair_, &pass);
   pass.gathered_column = slice_gathered_column_.data();
   pass.incoming_start = slice_incoming_start_.data();
   pass.incoming_slot = incoming_slot_.data();

@@ -163,8 +163,14 @@ class MassSpringModel final : public TissueModel {
   // pair; the state then holds MassSpringState::column_material instead of
   // column_stiffness_damping. Both empty otherwise.
   static constexpr size_t kMaxMaterialPairs = 4096;  // 64 KiB of table
+  // What a gathered column (8 gathers of 8 lanes) costs the pass in run columns (24 + 24
+  // consecutive values, 12 permutes), as measured on the benchmark organs (BuildExplicitLayout).
+  static constexpr double kGatheredColumnCost = 2.0;
   std::vector<double> material_kd_;
   std::vector<uint16_t> spring_material_;
+  // With the pairs: each column's one pair when all its springs have it (cut ones have pair 0
+  // in the state), else 0.
+  std::vector<uint16_t> column_pair_;
   // Each column's forces go to a ring (MassSpringState::column_forces) of ring_columns_ columns
   // (24 doubles each: x of the 8 lanes, then y, then z), whence the other nodes' slices gather
   // them: incoming column k of a slice holds each lane's k-th spring that ends on it.

@@ -14,8 +14,11 @@
 #include <vector>
 
 #include "common/mesh_gen/builtin_organs.h"
+#include "common/mesh_gen/structured_meshes.h"
 #include "server/models/cut_geometry.h"
 #include "server/models/mass_spring_model.h"
+#include "server/models/mass_spring_state.h"
+#include "server/models/particle_mesh.h"
 
 namespace somasim::models {
 
@@ -454,6 +457,73 @@ TEST(MassSpringExplicit, PairTableCutsAndStepsLikeThePlainLoop) {
   ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
   EXPECT_LT(RelativeDifference(state->velocities - v0, dv), 1e-12);
   EXPECT_LT(RelativeDifference(state->positions, x0 + inputs.dt * (v0 + dv)), 1e-15);
+}
+
+// A tetrahedral box grid with a physical material (Van Gelder's rule). Congruent springs' constants
+// differ only by rounding and are merged (each within 1e-12 of its rule), so the state keeps a
+// table of few (k, d) pairs. Most of the pass's columns are runs of one edge kind (8 consecutive
+// other nodes, some lanes empty at the box's faces) and one pair; the faces' columns mix kinds and
+// pairs. A cut leaves one-pair columns with cut springs in them. Both passes give the plain
+// loop's forces and step.
+TEST(MassSpringExplicit, TetGridWithAPhysicalMaterialGivesThePlainForcesAfterACut) {
+  const mesh::TetMesh grid =
+      mesh_gen::BoxGridTets(9, 10, 11, Vector3d::Zero(), Vector3d(0.08, 0.09, 0.1));
+  MassSpringParameters p;
+  p.youngs_modulus = 3000.0;  // [Pa]
+  p.density = 1050.0;         // [kg/m³]
+  p.damping_ratio = 0.1;
+  const auto model = MassSpringModel::FromTetMesh(grid, p);
+  const auto state = model->MakeState();
+  ASSERT_TRUE(MassSpringStateUsesPairTableForTesting(*state));
+  const MeshEdges edges = TetMeshEdges(grid, "test");
+  ASSERT_EQ(edges.edges.size(), model->stiffness().size());
+  std::vector<double> distinct = model->stiffness();
+  for (size_t s = 0; s < edges.edges.size(); ++s) {
+    const auto [i, j] = edges.edges[s];
+    const double length = (grid.vertices.col(j) - grid.vertices.col(i)).norm();
+    const double rule = p.youngs_modulus * edges.edge_size[s] / (length * length);
+    ASSERT_LE(std::abs(model->stiffness()[s] - rule), 1e-12 * rule) << "spring " << s;
+  }
+  std::sort(distinct.begin(), distinct.end());
+  distinct.erase(std::unique(distinct.begin(), distinct.end()), distinct.end());
+  EXPECT_LE(distinct.size(), 40U);  // 7 edge kinds × the boxes' faces, edges and corners
+  // A blade between two planes of nodes (x = 0.043 m).
+  SweptQuad sweep;
+  sweep.p0 = Vector3d(0.043, -1.0, -1.0);
+  sweep.q0 = Vector3d(0.043, -1.0, 2.0);
+  sweep.p1 = Vector3d(0.043, 2.0, -1.0);
+  sweep.q1 = Vector3d(0.043, 2.0, 2.0);
+  const auto scalar = model->MakeState();
+  const int32_t cut = model->Cut(sweep, state.get());
+  ASSERT_GT(cut, 0);
+  ASSERT_EQ(model->Cut(sweep, scalar.get()), cut);
+  Randomise(state.get(), 0.001, 0.05, 21);
+  const auto& constants = static_cast<const MassSpringState&>(*state);
+  const mesh::Points reference =
+      PlainForces(*model, *state, edges.edges, constants.stiffness, constants.damping);
+  const int32_t n = model->num_nodes();
+  mesh::Points forces(3, n);
+  model->InternalForces(*state, &forces);
+  EXPECT_LT(RelativeDifference(forces, reference), 1e-12);
+  scalar->positions = state->positions;
+  scalar->velocities = state->velocities;
+  StepInputs inputs;
+  inputs.dt = 1e-5;
+  const mesh::Points x0 = state->positions, v0 = state->velocities;
+  ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+  {
+    const ScalarPass scalar_pass;
+    model->InternalForces(*scalar, &forces);
+    EXPECT_LT(RelativeDifference(forces, reference), 1e-12);
+    ASSERT_EQ(model->Step(inputs, scalar.get()), StepStatus::kOk);
+  }
+  mesh::Points dv(3, n);
+  for (int32_t i = 0; i < n; ++i) {
+    dv.col(i) = inputs.dt / model->masses()[static_cast<size_t>(i)] * reference.col(i);
+  }
+  EXPECT_LT(RelativeDifference(state->velocities - v0, dv), 1e-12);
+  EXPECT_LT(RelativeDifference(state->positions, x0 + inputs.dt * (v0 + dv)), 1e-15);
+  EXPECT_LT(RelativeDifference(scalar->velocities, state->velocities), 1e-12);
 }
 
 }  // namespace
