@@ -30,7 +30,7 @@
 //    (ChecksStateItself), so Step makes no second pass over them.
 //  - per spring the pass streams about 32 bytes (other node, l0, k, d, incoming slot); k and d
 //    live in the state in the column layout (MakeState fills and Cut zeroes both copies). When
-//    the springs share few exact (k, d) pairs (a structured mesh: 21 pairs for the 1M springs
+//    the springs share few exact (k, d) pairs (a structured mesh: 20 pairs for the 1M springs
 //    of a 53³ grid, once Build has merged constants that differ by rounding only), the state
 //    keeps instead a 2-byte index per spring into the model's table of pairs (pair 0 is (0, 0):
 //    Cut just sets the index to 0), gathered from L1/L2: 18 bytes per spring instead of 32 of
