@@ -267,7 +267,7 @@ SOMASIM_MSS_TARGET __attribute__((always_inline)) inline void SpringColumn(
   // 1/l from y0 = rsqrt14(l²) (relative error < 2^-14) by one third-order correction
   // (PositionBasedModel's): with r = 1 - l² y0², 1/l = y0 (1 + r/2 + 3r²/8 + 5r³/16 + O(r⁴)),
   // O(r⁴) < 2^-56. Lanes without a direction (empty, or a spring shorter than 1e-100 m: as
-  // good as zero length) get t = 0 below; the mask is not waited for here, as the chain
+  // good as zero length) get F = 0 below; the mask is not waited for before it, as the chain
   // from l² to t is what bounds the pass.
   const __mmask8 has_direction = _mm512_mask_cmp_pd_mask(lanes, l2, tiny, _CMP_GT_OQ);
   __m512d inv = _mm512_maskz_rsqrt14_pd(lanes, l2);

@@ -148,14 +148,17 @@ class MassSpringModel final : public TissueModel {
   // The springs in the explicit pass's own layout (SELL-8): nodes go in slices of 8 consecutive
   // nodes, one SIMD lane each; each spring belongs to the lane of its end in the earlier slice
   // (either end when both share one) and sits in one column of its slice (8 lanes, at most one
-  // spring each).
+  // spring each): first the slice's run columns (one offset Δ = other node − lane node each, so
+  // lane l's other node is lane 0's + l; lanes without a spring of that Δ are empty), then its
+  // gathered ones.
   void BuildExplicitLayout();
   std::vector<int32_t> slice_column_start_;  // num_slices + 1: columns of each slice
-  std::vector<int32_t> column_other3_;       // 8 per column: 3 × the lane's other node (0: empty)
-  std::vector<double> column_rest_;          // [m], 8 per column: l0 (0: empty)
-  std::vector<uint8_t> column_lanes_;        // 1 per column: bit l set when lane l has a spring
-  // num_slices: each slice's first column that is not consecutive (other nodes b..b + 7: those
-  // come first in a slice).
+  // 8 per column: 3 × the lane's other node (a gathered column's empty lanes: 0; a run
+  // column's: the node lane 0's + l would be).
+  std::vector<int32_t> column_other3_;
+  std::vector<double> column_rest_;    // [m], 8 per column: l0 (0: empty)
+  std::vector<uint8_t> column_lanes_;  // 1 per column: bit l set when lane l has a spring
+  // num_slices: each slice's first gathered column (after its run columns).
   std::vector<int32_t> slice_gathered_column_;
   std::vector<int32_t> spring_slot_;  // num_springs: 8 × column + lane of each spring
   // When the springs share few (k, d) pairs (BuildExplicitLayout decides): the pairs (k [N/m],
@@ -172,14 +175,17 @@ class MassSpringModel final : public TissueModel {
   // in the state), else 0.
   std::vector<uint16_t> column_pair_;
   // Each column's forces go to a ring (MassSpringState::column_forces) of ring_columns_ columns
-  // (24 doubles each: x of the 8 lanes, then y, then z), whence the other nodes' slices gather
-  // them: incoming column k of a slice holds each lane's k-th spring that ends on it.
+  // (24 doubles each: x of the 8 lanes, then y, then z) and one zero column after them (never
+  // written), whence the other nodes' slices take them: a slice's rotated incoming columns (one
+  // per Δ of run columns ending on it: lanes r..7 of one ring column and 0..r-1 of another, or
+  // of the zero column), then gathered ones (column k: each lane's k-th other spring).
   int32_t ring_columns_ = 1;                   // a power of two
   std::vector<int32_t> slice_incoming_start_;  // num_slices + 1: incoming columns of each slice
-  std::vector<int32_t> incoming_slot_;         // 8 per incoming column: ring index of the x
-  std::vector<uint8_t> incoming_lanes_;        // 1 per incoming column: lanes with a spring
-  // num_slices: each slice's first incoming column that is not rotated (lanes r..7 of one ring
-  // column and lanes 0..r-1 of another: those come first in a slice).
+  // 8 per incoming column: rotated, the two ring columns' indices and r; gathered, each lane's
+  // ring index of the x.
+  std::vector<int32_t> incoming_slot_;
+  std::vector<uint8_t> incoming_lanes_;  // 1 per incoming column: lanes with a spring
+  // num_slices: each slice's first gathered incoming column (after its rotated ones).
   std::vector<int32_t> slice_gathered_incoming_;
   // --- end of explicit-step data ---
   // --- implicit-step data (mass_spring_implicit.cc) ---
