@@ -702,6 +702,10 @@ void MassSpringModel::BuildExplicitLayout() {
     lane_node[s] = per_node[static_cast<size_t>(j)] < per_node[static_cast<size_t>(i)] ? j : i;
     ++per_node[static_cast<size_t>(lane_node[s])];
   }
+  // The end of spring s that is not its lane node.
+  const auto other_end = [&](size_t s) {
+    return lane_node[s] == spring_i_[s] ? spring_j_[s] : spring_i_[s];
+  };
   // Springs by lane node (CSR), in canonical order within a node.
   std::vector<size_t> start(n + 1, 0);
   for (size_t s = 0; s < m; ++s) ++start[static_cast<size_t>(lane_node[s]) + 1];
@@ -759,9 +763,7 @@ void MassSpringModel::BuildExplicitLayout() {
     for (size_t node = first; node < last; ++node) {
       for (size_t k = start[node]; k < start[node + 1]; ++k) {
         const size_t s = by_node[k];
-        const int32_t other =
-            spring_i_[s] == static_cast<int32_t>(node) ? spring_j_[s] : spring_i_[s];
-        candidates.push_back({int64_t{other} - static_cast<int64_t>(node), node - first, s});
+        candidates.push_back({int64_t{other_end(s)} - static_cast<int64_t>(node), node - first, s});
       }
     }
     // By Δ; within one Δ by lane, and a lane's springs in canonical order.
@@ -840,8 +842,7 @@ void MassSpringModel::BuildExplicitLayout() {
         if (k >= rest_of_lane[lane].size()) continue;
         const size_t s = rest_of_lane[lane][k];
         spring[lane] = s;
-        other3[lane] =
-            3 * (spring_i_[s] == static_cast<int32_t>(first + lane) ? spring_j_[s] : spring_i_[s]);
+        other3[lane] = 3 * other_end(s);
         lanes = static_cast<uint8_t>(lanes | (1U << lane));
       }
       emit_column(spring, other3, lanes);
@@ -858,8 +859,7 @@ void MassSpringModel::BuildExplicitLayout() {
   // are gathered from their ring places, column k holding each lane's k-th.
   std::vector<std::vector<size_t>> incoming(n);
   for (size_t s = 0; s < m; ++s) {
-    const int32_t b = lane_node[s] == spring_i_[s] ? spring_j_[s] : spring_i_[s];
-    incoming[static_cast<size_t>(b)].push_back(s);
+    incoming[static_cast<size_t>(other_end(s))].push_back(s);
   }
   struct IncomingColumn {
     // Rotated: {column of lanes r.., column of lanes ..r-1, r} (-1: the zero column); gathered:
