@@ -133,34 +133,40 @@ double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __r
 
 #ifdef SOMASIM_PBD_AVX512
 // 8 node records (x, y, z, w) at x + offset[0..7] (32-byte aligned) as the rows X, Y, Z, W of
-// 8 lanes: two 256-bit loads per 512-bit register, then an 8 × 4 transpose (unpacks and
-// two-source permutes).
-// (The masked forms of unpack and extract, all lanes set, are the plain instructions without
-// gcc-12's uninitialised-value warnings.)
+// 8 lanes: two 256-bit loads per 512-bit register, then an 8 × 4 transpose. Loading pairs the
+// records 0 2, 1 3, 4 6, 5 7, so that unpacks and 128-bit lane selections (vshuff64x2)
+// transpose them; storing pairs 0 4, 1 5, 2 6, 3 7 and uses two-source permutes. On Zen 4 a
+// two-source permute takes a whole multiply slot and a lane selection about 0.6 of one (3–4 %
+// of the sweep).
+// (The masked forms of unpack, shuffle and extract, all lanes set, are the plain instructions
+// without gcc-12's uninitialised-value warnings.)
 struct Lanes {
   __m512d x, y, z, w;
 };
 
-// Records offset[a] and offset[a + 4] in one register.
+// Records offset[a] and offset[b] in one register.
 __attribute__((target("avx512f,avx512vl"))) inline __m512d LoadPair(const double* x,
-                                                                    const int32_t* offset, int a) {
+                                                                    const int32_t* offset, int a,
+                                                                    int b) {
   return _mm512_mask_broadcast_f64x4(_mm512_castpd256_pd512(_mm256_load_pd(x + offset[a])), 0xF0,
-                                     _mm256_load_pd(x + offset[a + 4]));
+                                     _mm256_load_pd(x + offset[b]));
 }
 
 __attribute__((target("avx512f,avx512vl"))) inline Lanes LoadRecords(const double* x,
-                                                                     const int32_t* offset,
-                                                                     __m512i low, __m512i high) {
-  const __m512d r04 = LoadPair(x, offset, 0);  // x0 y0 z0 w0 x4 y4 z4 w4
-  const __m512d r15 = LoadPair(x, offset, 1);
-  const __m512d r26 = LoadPair(x, offset, 2);
-  const __m512d r37 = LoadPair(x, offset, 3);
-  const __m512d t0 = _mm512_mask_unpacklo_pd(r04, 0xFF, r04, r15);  // x0 x1 z0 z1 x4 x5 z4 z5
-  const __m512d t1 = _mm512_mask_unpackhi_pd(r04, 0xFF, r04, r15);  // y0 y1 w0 w1 y4 y5 w4 w5
-  const __m512d t2 = _mm512_mask_unpacklo_pd(r26, 0xFF, r26, r37);  // x2 x3 z2 z3 x6 x7 z6 z7
-  const __m512d t3 = _mm512_mask_unpackhi_pd(r26, 0xFF, r26, r37);  // y2 y3 w2 w3 y6 y7 w6 w7
-  return {_mm512_permutex2var_pd(t0, low, t2), _mm512_permutex2var_pd(t1, low, t3),
-          _mm512_permutex2var_pd(t0, high, t2), _mm512_permutex2var_pd(t1, high, t3)};
+                                                                     const int32_t* offset) {
+  const __m512d r02 = LoadPair(x, offset, 0, 2);  // x0 y0 z0 w0 x2 y2 z2 w2
+  const __m512d r13 = LoadPair(x, offset, 1, 3);
+  const __m512d r46 = LoadPair(x, offset, 4, 6);
+  const __m512d r57 = LoadPair(x, offset, 5, 7);
+  const __m512d t0 = _mm512_mask_unpacklo_pd(r02, 0xFF, r02, r13);  // x0 x1 z0 z1 x2 x3 z2 z3
+  const __m512d t1 = _mm512_mask_unpackhi_pd(r02, 0xFF, r02, r13);  // y0 y1 w0 w1 y2 y3 w2 w3
+  const __m512d t2 = _mm512_mask_unpacklo_pd(r46, 0xFF, r46, r57);  // x4 x5 z4 z5 x6 x7 z6 z7
+  const __m512d t3 = _mm512_mask_unpackhi_pd(r46, 0xFF, r46, r57);  // y4 y5 w4 w5 y6 y7 w6 w7
+  // 128-bit lanes 0 2 of t0 then 0 2 of t2 (0x88), or 1 3 of each (0xDD).
+  return {_mm512_maskz_shuffle_f64x2(0xFF, t0, t2, 0x88),
+          _mm512_maskz_shuffle_f64x2(0xFF, t1, t3, 0x88),
+          _mm512_maskz_shuffle_f64x2(0xFF, t0, t2, 0xDD),
+          _mm512_maskz_shuffle_f64x2(0xFF, t1, t3, 0xDD)};
 }
 
 // The inverse of LoadPair.
@@ -203,16 +209,20 @@ __attribute__((target("avx512f,avx512vl"), always_inline)) inline void ProjectLa
   const __mmask8 ok = _mm512_cmp_pd_mask(l2, zero, _CMP_GT_OQ);
   // 1/l from y0 = rsqrt14(l²) (relative error < 2^-14) by one third-order correction: with
   // r = 1 - l² y0², 1/l = y0 (1 - r)^(-1/2) = y0 (1 + r/2 + 3r²/8 + 5r³/16 + O(r⁴)), O(r⁴) <
-  // 2^-56: as exact as two Newton steps, in 6 operations instead of 7 and a shorter chain.
+  // 2^-56: as exact as two Newton steps. Summed as y0 + y0 r/2 + (y0 r) r (3/8 + 5r/16), the
+  // chain after r is three steps: the sweep is bound by this chain (one group of 8 per
+  // iteration instead of two is 20 % slower on Zen 4), not by the operation count.
   __m512d y = _mm512_maskz_rsqrt14_pd(ok, l2);
   const __m512d r = _mm512_fnmadd_pd(l2, _mm512_mul_pd(y, y), one);
-  const __m512d series =
-      _mm512_fmadd_pd(r, _mm512_fmadd_pd(r, _mm512_set1_pd(0.3125), _mm512_set1_pd(0.375)), half);
-  y = _mm512_fmadd_pd(_mm512_mul_pd(y, r), series, y);
-  const __m512d length = _mm512_mul_pd(l2, y);  // 0 where l = 0
+  const __m512d yr = _mm512_mul_pd(y, r);
+  y = _mm512_fmadd_pd(_mm512_mul_pd(yr, r),
+                      _mm512_fmadd_pd(r, _mm512_set1_pd(0.3125), _mm512_set1_pd(0.375)),
+                      _mm512_fmadd_pd(yr, half, y));
+  // t = l - (a - α̃ λ), one fused step after 1/l: a - α̃ λ is ready before it.
   const __m512d lambda = kFirst ? zero : _mm512_loadu_pd(s.lambda + e);
-  const __m512d c = _mm512_sub_pd(length, _mm512_loadu_pd(s.rest + e));
-  const __m512d t = kFirst ? c : _mm512_fmadd_pd(_mm512_loadu_pd(s.alpha + e), lambda, c);
+  const __m512d rest = _mm512_loadu_pd(s.rest + e);
+  const __m512d t = _mm512_fmsub_pd(
+      l2, y, kFirst ? rest : _mm512_fnmadd_pd(_mm512_loadu_pd(s.alpha + e), lambda, rest));
   if constexpr (kResidual) {
     const __m512i sign_mask = _mm512_set1_epi64(INT64_MAX);
     const __m512d relative =
@@ -221,17 +231,19 @@ __attribute__((target("avx512f,avx512vl"), always_inline)) inline void ProjectLa
     *worst = _mm512_mask_max_pd(*worst, 0xFF, *worst, relative);
   }
   // -(t gain) + 0, exactly the scalar -t · gain.
-  const __m512d dlambda = _mm512_maskz_fnmadd_pd(ok, t, _mm512_loadu_pd(s.gain + e), zero);
+  const __m512d gain = _mm512_loadu_pd(s.gain + e);
+  const __m512d dlambda = _mm512_maskz_fnmadd_pd(ok, t, gain, zero);
   _mm512_storeu_pd(s.lambda + e, kFirst ? dlambda : _mm512_add_pd(lambda, dlambda));
-  const __m512d f = _mm512_mul_pd(dlambda, y);  // 0 where l = 0: those lanes do not move
-  const __m512d fi = _mm512_mul_pd(i->w, f);
-  const __m512d fj = _mm512_mul_pd(j->w, f);
-  i->x = _mm512_fnmadd_pd(fi, dx, i->x);
-  i->y = _mm512_fnmadd_pd(fi, dy, i->y);
-  i->z = _mm512_fnmadd_pd(fi, dz, i->z);
-  j->x = _mm512_fmadd_pd(fj, dx, j->x);
-  j->y = _mm512_fmadd_pd(fj, dy, j->y);
-  j->z = _mm512_fmadd_pd(fj, dz, j->z);
+  // x_i -= w_i Δλ d/l = x_i + t (w_i gain / l) d, with (w_i gain) / l formed while t is: two
+  // steps after t instead of four. (0 where l = 0: y is 0 there, and those lanes do not move.)
+  const __m512d fi = _mm512_mul_pd(t, _mm512_mul_pd(_mm512_mul_pd(i->w, gain), y));
+  const __m512d fj = _mm512_mul_pd(t, _mm512_mul_pd(_mm512_mul_pd(j->w, gain), y));
+  i->x = _mm512_fmadd_pd(fi, dx, i->x);
+  i->y = _mm512_fmadd_pd(fi, dy, i->y);
+  i->z = _mm512_fmadd_pd(fi, dz, i->z);
+  j->x = _mm512_fnmadd_pd(fj, dx, j->x);
+  j->y = _mm512_fnmadd_pd(fj, dy, j->y);
+  j->z = _mm512_fnmadd_pd(fj, dz, j->z);
 }
 
 // ProjectScalar, 16 then 8 slots at a time: valid only when no two slots of [begin, end) share a
@@ -250,10 +262,10 @@ __attribute__((target("avx512f,avx512vl"))) double ProjectAvx512(const SweepArra
   __m512d worst = _mm512_setzero_pd();
   size_t e = begin;
   for (; e + 16 <= end; e += 16) {
-    Lanes i0 = LoadRecords(x, s.i4 + e, low, high);
-    Lanes j0 = LoadRecords(x, s.j4 + e, low, high);
-    Lanes i1 = LoadRecords(x, s.i4 + e + 8, low, high);
-    Lanes j1 = LoadRecords(x, s.j4 + e + 8, low, high);
+    Lanes i0 = LoadRecords(x, s.i4 + e);
+    Lanes j0 = LoadRecords(x, s.j4 + e);
+    Lanes i1 = LoadRecords(x, s.i4 + e + 8);
+    Lanes j1 = LoadRecords(x, s.j4 + e + 8);
     ProjectLanes<kResidual, kFirst>(s, e, &i0, &j0, &worst);
     ProjectLanes<kResidual, kFirst>(s, e + 8, &i1, &j1, &worst);
     StoreRecords(i0, x, s.i4 + e, low, high);
@@ -262,8 +274,8 @@ __attribute__((target("avx512f,avx512vl"))) double ProjectAvx512(const SweepArra
     StoreRecords(j1, x, s.j4 + e + 8, low, high);
   }
   if (e + 8 <= end) {
-    Lanes i0 = LoadRecords(x, s.i4 + e, low, high);
-    Lanes j0 = LoadRecords(x, s.j4 + e, low, high);
+    Lanes i0 = LoadRecords(x, s.i4 + e);
+    Lanes j0 = LoadRecords(x, s.j4 + e);
     ProjectLanes<kResidual, kFirst>(s, e, &i0, &j0, &worst);
     StoreRecords(i0, x, s.i4 + e, low, high);
     StoreRecords(j0, x, s.j4 + e, low, high);
@@ -622,7 +634,6 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   const double dt = inputs.dt;
   const double dt2 = dt * dt;
   const auto n = static_cast<size_t>(rest_.cols());
-  mesh::Points& x = state->positions;  // the start of the step until the copy-out
   double* __restrict nodes = state->nodes();
   double* __restrict w = state->inverse_mass.data();
 
@@ -634,12 +645,15 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
       inputs.external_forces != nullptr ? inputs.external_forces->data() : nullptr;
   if (volume_ != nullptr) {
     state->volume_forces.setZero();
-    volume_->AddForces(x, &state->volume_forces);
+    volume_->AddForces(state->positions, &state->volume_forces);
     if (pf != nullptr) state->volume_forces += *inputs.external_forces;
     pf = state->volume_forces.data();
   }
-  const double* __restrict px = x.data();
-  const double* __restrict pv = state->velocities.data();
+  // SavesGoodStateItself: the state the step starts from becomes the last-good one by a swap of
+  // buffers (no copy); the step reads it there and writes every node's new x and v at the end.
+  SwapWithLastGood(state);
+  const double* __restrict px = LastGoodPositions(state);
+  const double* __restrict pv = LastGoodVelocities(state);
   const std::array<double, 3> g = {inputs.gravity.x(), inputs.gravity.y(), inputs.gravity.z()};
   // One loop per case, so that the test for external forces stays out of the loop.
   const auto predict = [&](auto forces) {
@@ -826,17 +840,25 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   // Back to the public order, with velocities consistent with the Verlet step:
   // v = (x_new - x)/Δt (fixed nodes: 0). In public order, so that x and v are read and written
   // as streams and only the records are read at random (no random read-modify-write).
+  // ChecksStateItself: every value written is checked here, as Step's own pass would.
   const double inverse_dt = 1.0 / dt;
-  double* __restrict out_x = x.data();
+  const double component_limit = component_speed_limit();
+  double* __restrict out_x = state->positions.data();
   double* __restrict out_v = state->velocities.data();
+  bool non_finite = false, maybe_too_fast = false;
   for (size_t i = 0; i < n; ++i) {
     const double* record = nodes + 4 * static_cast<size_t>(node_slot_[i]);
     for (size_t k = 0; k < 3; ++k) {
       const double updated = record[k];
-      out_v[3 * i + k] = (updated - out_x[3 * i + k]) * inverse_dt;
+      const double v = (updated - px[3 * i + k]) * inverse_dt;
+      out_v[3 * i + k] = v;
       out_x[3 * i + k] = updated;
+      // x − x is 0 for every finite x and NaN for NaN and ±∞.
+      non_finite = non_finite || !(updated - updated == 0.0) || !(v - v == 0.0);
+      maybe_too_fast = maybe_too_fast || std::abs(v) > component_limit;
     }
   }
+  SetStateChecked(state, non_finite, maybe_too_fast);
   state->last_dt = dt;
 }
 

@@ -132,6 +132,10 @@ class PositionBasedModel final : public TissueModel {
 
  protected:
   void Advance(const StepInputs& inputs, TissueState* state) const override;
+  // The step keeps the state it starts from as the last-good one (SwapWithLastGood), writes
+  // every node's new x and v in its copy back from the records, and checks them there.
+  bool SavesGoodStateItself() const override { return true; }
+  bool ChecksStateItself() const override { return true; }
 
  private:
   PositionBasedModel() = default;

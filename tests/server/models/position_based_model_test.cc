@@ -363,6 +363,52 @@ TEST(PositionBasedModel, DivergenceIsRolledBackWithTheMultipliers) {
   EXPECT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
 }
 
+// The step keeps the state it starts from as the last-good one (SavesGoodStateItself) and checks
+// what it writes itself (ChecksStateItself): a rejected step, too fast or not finite, must
+// restore that state bit for bit, also twice in a row, and the steps after it must be exactly
+// those of a twin that never saw it, on both sweeps.
+TEST(PositionBasedModel, RejectedStepRestoresTheStateExactly) {
+  const mesh_gen::BuiltinOrgan patch = mesh_gen::GenerateBuiltinOrgan("tissue45");
+  for (const bool vectorised : {false, true}) {
+    PositionBasedParameters p = Xpbd(8);
+    p.vectorised = vectorised;
+    const auto model = PositionBasedModel::FromSurface(patch.surface, p);
+    const auto state = model->MakeState();
+    const auto twin = model->MakeState();
+    const int32_t fixed[] = {0, 1};
+    StepInputs inputs;
+    inputs.dt = 1e-3;
+    inputs.gravity = Vector3d(0.0, 0.0, -9.81);
+    inputs.fixed_nodes = fixed;
+    for (int step = 0; step < 5; ++step) {
+      ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+      ASSERT_EQ(model->Step(inputs, twin.get()), StepStatus::kOk);
+    }
+    const mesh::Points positions = state->positions;
+    const mesh::Points velocities = state->velocities;
+    const int32_t n = model->num_nodes();
+    const mesh::Points fast = PointLoad(n, 7, Vector3d(0.0, 0.0, 1e9));          // [N]
+    const mesh::Points overflow = PointLoad(n, 7, Vector3d(0.0, 1e308, 1e308));  // [N]
+    StepInputs blow_up = inputs;
+    blow_up.external_forces = &fast;
+    StepInputs infinite = inputs;
+    infinite.external_forces = &overflow;
+    EXPECT_EQ(model->Step(blow_up, state.get()), StepStatus::kRejectedTooFast) << vectorised;
+    EXPECT_TRUE((state->positions.array() == positions.array()).all());
+    EXPECT_TRUE((state->velocities.array() == velocities.array()).all());
+    EXPECT_EQ(model->Step(infinite, state.get()), StepStatus::kRejectedNonFinite) << vectorised;
+    EXPECT_TRUE((state->positions.array() == positions.array()).all());
+    EXPECT_TRUE((state->velocities.array() == velocities.array()).all());
+    EXPECT_EQ(state->counters.rejected_steps, 2);
+    for (int step = 0; step < 5; ++step) {
+      ASSERT_EQ(model->Step(inputs, state.get()), StepStatus::kOk);
+      ASSERT_EQ(model->Step(inputs, twin.get()), StepStatus::kOk);
+    }
+    EXPECT_TRUE((state->positions.array() == twin->positions.array()).all()) << vectorised;
+    EXPECT_TRUE((state->velocities.array() == twin->velocities.array()).all()) << vectorised;
+  }
+}
+
 TEST(PositionBasedModel, ToleranceStopsTheSweepsEarly) {
   const mesh_gen::BuiltinOrgan patch = mesh_gen::GenerateBuiltinOrgan("tissue45");
   PositionBasedParameters p = Xpbd(1000);
