@@ -109,13 +109,6 @@ struct SlicePass {
   double component_limit;      // [m/s]: a velocity component above it is flagged
 };
 
-// What an integrating pass found in the values it wrote (Step's check: TissueModel::
-// ChecksStateItself): a NaN or infinity; a velocity component above the limit.
-struct PassCheck {
-  bool non_finite = false;
-  bool maybe_too_fast = false;
-};
-
 // Seed 002 eq. 1–3 for one spring: the force F [N] on the lane's node a (the other node b gets
 // -F): F = (K (l - l0) + D ((v_b - v_a)·u)) u, l = |x_b - x_a|, u = (x_b - x_a) / l (u = 0 for a
 // spring of zero length).
@@ -134,8 +127,8 @@ inline void SpringForce(const double* xa, const double* va, const double* xb, co
 
 // The slice pass one spring and one node at a time: the reference the AVX-512 pass must match
 // to rounding, and the path of CPUs without AVX-512.
-PassCheck SlicePassScalar(const SlicePass& p) {
-  PassCheck check;
+StateCheck SlicePassScalar(const SlicePass& p) {
+  StateCheck check;
   const size_t num_slices = (p.num_nodes + 7) / 8;
   for (size_t slice = 0; slice < num_slices; ++slice) {
     const size_t first = 8 * slice;
@@ -200,9 +193,7 @@ PassCheck SlicePassScalar(const SlicePass& p) {
         const double x1 = x0 + p.dt * v1;
         p.moved_v[a + axis] = v1;
         p.moved_x[a + axis] = x1;
-        // x − x is 0 for every finite x and NaN for NaN and ±∞.
-        check.non_finite = check.non_finite || !(x1 - x1 == 0.0) || !(v1 - v1 == 0.0);
-        check.maybe_too_fast = check.maybe_too_fast || std::abs(v1) > p.component_limit;
+        check.Add(x1, v1, p.component_limit);
       }
     }
   }
@@ -326,7 +317,7 @@ SOMASIM_MSS_TARGET __attribute__((always_inline)) inline void SpringColumn(
 // and the force is t (x_b - x_a) with the scale t = F/l, so the unit vector is never formed. The
 // slice's integration runs on the flat values, 24 at a time. Results differ from the scalar pass by
 // rounding only.
-SOMASIM_MSS_TARGET PassCheck SlicePassAvx512(const SlicePass& pass) {
+SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
   // Local copies: the scatters could alias `pass` as far as the compiler knows.
   const SlicePass p = pass;
   const __m512d dt = _mm512_set1_pd(p.dt);
@@ -454,14 +445,14 @@ SOMASIM_MSS_TARGET PassCheck SlicePassAvx512(const SlicePass& pass) {
 }
 
 #else
-PassCheck SlicePassAvx512(const SlicePass& p) { return SlicePassScalar(p); }
+StateCheck SlicePassAvx512(const SlicePass& p) { return SlicePassScalar(p); }
 #endif
 
 // Tests switch the AVX-512 pass off to compare it with the scalar one
 // (SetMassSpringAvx512ForTesting, declared where the tests use it).
 bool g_use_avx512 = true;
 
-PassCheck RunSlicePass(const SlicePass& p) {
+StateCheck RunSlicePass(const SlicePass& p) {
   if (g_use_avx512 && CpuHasAvx512()) return SlicePassAvx512(p);
   return SlicePassScalar(p);
 }
@@ -1140,7 +1131,7 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.gravity[1] = inputs.gravity.y();
   pass.gravity[2] = inputs.gravity.z();
   pass.component_limit = component_speed_limit();
-  const PassCheck check = RunSlicePass(pass);
+  const StateCheck check = RunSlicePass(pass);
   ApplyFixedAndPrescribed(inputs, state);
   // ChecksStateItself: the pass checked every value it wrote, but fixed and prescribed nodes
   // have been given new ones since. When the pass found nothing, checking those nodes completes
@@ -1151,17 +1142,15 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
     CheckWholeState(state);
     return;
   }
-  bool non_finite = false, maybe_too_fast = false;
+  StateCheck moved;
   const auto check_node = [&](int32_t node) {
     for (Eigen::Index axis = 0; axis < 3; ++axis) {
-      const double x = state->positions(axis, node), v = state->velocities(axis, node);
-      non_finite = non_finite || !(x - x == 0.0) || !(v - v == 0.0);
-      maybe_too_fast = maybe_too_fast || std::abs(v) > pass.component_limit;
+      moved.Add(state->positions(axis, node), state->velocities(axis, node), pass.component_limit);
     }
   };
   for (const int32_t node : inputs.fixed_nodes) check_node(node);
   for (const int32_t node : inputs.prescribed_nodes) check_node(node);
-  SetStateChecked(state, non_finite, maybe_too_fast);
+  SetStateChecked(state, moved.non_finite, moved.maybe_too_fast);
 }
 
 Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_t node) const {

@@ -845,7 +845,7 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   const double component_limit = component_speed_limit();
   double* __restrict out_x = state->positions.data();
   double* __restrict out_v = state->velocities.data();
-  bool non_finite = false, maybe_too_fast = false;
+  StateCheck check;
   for (size_t i = 0; i < n; ++i) {
     const double* record = nodes + 4 * static_cast<size_t>(node_slot_[i]);
     for (size_t k = 0; k < 3; ++k) {
@@ -853,12 +853,10 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
       const double v = (updated - px[3 * i + k]) * inverse_dt;
       out_v[3 * i + k] = v;
       out_x[3 * i + k] = updated;
-      // x − x is 0 for every finite x and NaN for NaN and ±∞.
-      non_finite = non_finite || !(updated - updated == 0.0) || !(v - v == 0.0);
-      maybe_too_fast = maybe_too_fast || std::abs(v) > component_limit;
+      check.Add(updated, v, component_limit);
     }
   }
-  SetStateChecked(state, non_finite, maybe_too_fast);
+  SetStateChecked(state, check.non_finite, check.maybe_too_fast);
   state->last_dt = dt;
 }
 

@@ -16,16 +16,11 @@
 namespace somasim::models {
 namespace {
 
-struct FlatCheck {
-  bool non_finite = false;      // some x or v is NaN or infinite
-  bool maybe_too_fast = false;  // some |v component| > component_limit
-};
-
 // x − x is 0 for every finite x and NaN for NaN and ±∞. SSE2 (the x86-64 baseline) checks two
 // doubles per instruction; other targets take the scalar loop; CPUs with AVX-512 take
 // CheckFlatAvx512 (same answers).
-FlatCheck CheckFlat(const double* __restrict x, const double* __restrict v, size_t count,
-                    double component_limit) {
+StateCheck CheckFlat(const double* __restrict x, const double* __restrict v, size_t count,
+                     double component_limit) {
   size_t k = 0;
   int non_finite = 0;
   int fast = 0;
@@ -55,9 +50,10 @@ FlatCheck CheckFlat(const double* __restrict x, const double* __restrict v, size
 #ifdef SOMASIM_CHECK_AVX512
 // CheckFlat, eight doubles per instruction: the check runs after every step over every node,
 // which at 10 kHz on a 5400-node organ is a tenth of a mass-spring step with SSE2.
-__attribute__((target("avx512f"))) FlatCheck CheckFlatAvx512(const double* __restrict x,
-                                                             const double* __restrict v,
-                                                             size_t count, double component_limit) {
+__attribute__((target("avx512f"))) StateCheck CheckFlatAvx512(const double* __restrict x,
+                                                              const double* __restrict v,
+                                                              size_t count,
+                                                              double component_limit) {
   size_t k = 0;
   __mmask8 bad = 0, above = 0;
   const __m512d limit = _mm512_set1_pd(component_limit);
@@ -67,7 +63,7 @@ __attribute__((target("avx512f"))) FlatCheck CheckFlatAvx512(const double* __res
     bad |= _mm512_cmp_pd_mask(_mm512_sub_pd(xv, xv), _mm512_sub_pd(vv, vv), _CMP_UNORD_Q);
     above |= _mm512_cmp_pd_mask(_mm512_abs_pd(vv), limit, _CMP_GT_OQ);
   }
-  FlatCheck result{bad != 0, above != 0};
+  StateCheck result{bad != 0, above != 0};
   for (; k < count; ++k) {
     result.non_finite = result.non_finite || !(x[k] - x[k] == 0.0) || !(v[k] - v[k] == 0.0);
     result.maybe_too_fast = result.maybe_too_fast || std::abs(v[k]) > component_limit;
@@ -110,7 +106,7 @@ bool ValuesFinite(const double* values, size_t count) {
   return AllFinite(values, count);
 }
 
-FlatCheck CheckState(const double* x, const double* v, size_t count, double component_limit) {
+StateCheck CheckState(const double* x, const double* v, size_t count, double component_limit) {
 #ifdef SOMASIM_CHECK_AVX512
   if (CpuHasAvx512()) return CheckFlatAvx512(x, v, count, component_limit);
 #endif
@@ -143,7 +139,7 @@ void TissueModel::InitialiseState(const mesh::Points& rest, TissueState* state) 
 }
 
 void TissueModel::CheckWholeState(TissueState* state) const {
-  const FlatCheck flat =
+  const StateCheck flat =
       CheckState(state->positions.data(), state->velocities.data(),
                  static_cast<size_t>(state->positions.size()), component_speed_limit());
   SetStateChecked(state, flat.non_finite, flat.maybe_too_fast);
@@ -184,9 +180,9 @@ StepStatus TissueModel::Step(const StepInputs& inputs, TissueState* state) const
   const auto count = static_cast<size_t>(3 * static_cast<Eigen::Index>(n));
   const double* x = state->positions.data();
   const double* v = state->velocities.data();
-  const FlatCheck flat = ChecksStateItself()
-                             ? FlatCheck{state->checked_non_finite_, state->checked_maybe_too_fast_}
-                             : CheckState(x, v, count, component_speed_limit());
+  const StateCheck flat =
+      ChecksStateItself() ? StateCheck{state->checked_non_finite_, state->checked_maybe_too_fast_}
+                          : CheckState(x, v, count, component_speed_limit());
   const bool non_finite = flat.non_finite;
   bool too_fast = false;
   if (flat.maybe_too_fast && !non_finite) {

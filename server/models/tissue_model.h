@@ -78,6 +78,21 @@ class TissueState {
   bool checked_maybe_too_fast_ = false;
 };
 
+// What a model that checks the state it writes itself (TissueModel::ChecksStateItself) finds:
+// a position or velocity that is not finite; a velocity component above the limit (the node's
+// speed is then checked exactly).
+struct StateCheck {
+  bool non_finite = false;
+  bool maybe_too_fast = false;
+  // One position component x [m] and velocity component v [m/s] as written; component_limit
+  // [m/s] is TissueModel::component_speed_limit().
+  void Add(double x, double v, double component_limit) {
+    // x − x is 0 for every finite x and NaN for NaN and ±∞.
+    non_finite = non_finite || !(x - x == 0.0) || !(v - v == 0.0);
+    maybe_too_fast = maybe_too_fast || std::abs(v) > component_limit;
+  }
+};
+
 struct EnergyReport {
   double kinetic = 0.0;                                // [J] ½ Σ m |v|²
   double elastic = 0.0;                                // [J] the model's internal energy

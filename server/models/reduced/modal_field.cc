@@ -25,7 +25,7 @@ struct Pass {
 };
 
 // DOFs [begin, end) of one chunk (end - begin <= kChunk), portable.
-void ReconstructChunk(const Pass& r, size_t chunk, size_t begin, size_t end, FieldCheck* check) {
+void ReconstructChunk(const Pass& r, size_t chunk, size_t begin, size_t end, StateCheck* check) {
   const float* block = r.modes + chunk * static_cast<size_t>(r.n) * ModalField::kChunk;
   for (size_t k = begin; k < end; ++k) {
     const size_t d = k - chunk * ModalField::kChunk;
@@ -37,8 +37,7 @@ void ReconstructChunk(const Pass& r, size_t chunk, size_t begin, size_t end, Fie
     }
     r.x[k] = r.rest[k] + static_cast<double>(u);
     r.v[k] = static_cast<double>(w);
-    check->non_finite = check->non_finite || !(r.x[k] - r.x[k] == 0.0) || !(r.v[k] - r.v[k] == 0.0);
-    check->maybe_too_fast = check->maybe_too_fast || std::abs(r.v[k]) > r.component_limit;
+    check->Add(r.x[k], r.v[k], r.component_limit);
   }
 }
 
@@ -48,7 +47,7 @@ void ReconstructChunk(const Pass& r, size_t chunk, size_t begin, size_t end, Fie
 // x = X + u and v in double, checked in registers as they are stored. (The zero-masked forms of
 // the extract and convert intrinsics: GCC 12 warns that the plain ones' source may be
 // uninitialised.)
-__attribute__((target("avx512f"))) FieldCheck ReconstructAvx512(const Pass& r, size_t count) {
+__attribute__((target("avx512f"))) StateCheck ReconstructAvx512(const Pass& r, size_t count) {
   static_assert(ModalField::kChunk == 32);
   __mmask8 bad = 0, above = 0;
   const __m512d limit = _mm512_set1_pd(r.component_limit);
@@ -88,7 +87,7 @@ __attribute__((target("avx512f"))) FieldCheck ReconstructAvx512(const Pass& r, s
       above |= _mm512_cmp_pd_mask(_mm512_abs_pd(v), limit, _CMP_GT_OQ);
     }
   }
-  FieldCheck check{bad != 0, above != 0};
+  StateCheck check{bad != 0, above != 0};
   if (k < count) ReconstructChunk(r, k / 32, k, count, &check);
   return check;
 }
@@ -110,13 +109,13 @@ ModalField::ModalField(const Eigen::MatrixXd& modes)
   }
 }
 
-FieldCheck ModalField::Reconstruct(const float* xi, const float* rate, const double* rest,
+StateCheck ModalField::Reconstruct(const float* xi, const float* rate, const double* rest,
                                    double* x, double* v, double component_limit) const {
   const Pass r{modes_.data(), n_, xi, rate, rest, x, v, component_limit};
 #ifdef SOMASIM_MODAL_AVX512
   if (CpuHasAvx512()) return ReconstructAvx512(r, dofs_);
 #endif
-  FieldCheck check;
+  StateCheck check;
   for (size_t begin = 0; begin < dofs_; begin += kChunk) {
     ReconstructChunk(r, begin / kChunk, begin, std::min(dofs_, begin + kChunk), &check);
   }
@@ -145,7 +144,7 @@ void ModalState::Rebuild() {
   }
   xi_single_ = xi.cast<float>();
   rate_single_ = rate.cast<float>();
-  const FieldCheck check =
+  const StateCheck check =
       field_->Reconstruct(xi_single_.data(), rate_single_.data(), rest_, positions.data(),
                           velocities.data(), component_limit_);
   checked_non_finite_ = check.non_finite || !xi.allFinite() || !rate.allFinite();

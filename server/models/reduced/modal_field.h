@@ -20,12 +20,6 @@
 
 namespace somasim::models::reduced {
 
-// What a reconstruction wrote: some x or v not finite; some |v component| above the limit.
-struct FieldCheck {
-  bool non_finite = false;
-  bool maybe_too_fast = false;
-};
-
 class ModalField {
  public:
   static constexpr size_t kChunk = 32;  // DOFs per block of the layout
@@ -37,7 +31,7 @@ class ModalField {
   size_t num_dofs() const { return dofs_; }
   // x = X + B ξ and v = B ξ̇ (each num_dofs; rest X likewise; xi and rate n values), and
   // the check of what it wrote against component_limit [m/s].
-  FieldCheck Reconstruct(const float* xi, const float* rate, const double* rest, double* x,
+  StateCheck Reconstruct(const float* xi, const float* rate, const double* rest, double* x,
                          double* v, double component_limit) const;
 
  private:

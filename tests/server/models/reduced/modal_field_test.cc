@@ -37,7 +37,7 @@ TEST(ModalField, ReconstructionEqualsTheDoubleSumForFullAndPartialChunks) {
       const Field f = RandomField(dofs, n, static_cast<uint32_t>(dofs + n));
       const ModalField field(f.modes);
       Eigen::VectorXd x(dofs), v(dofs);
-      const FieldCheck check = field.Reconstruct(f.xi_single.data(), f.rate_single.data(),
+      const StateCheck check = field.Reconstruct(f.xi_single.data(), f.rate_single.data(),
                                                  f.rest.data(), x.data(), v.data(), 1e3);
       EXPECT_FALSE(check.non_finite);
       EXPECT_FALSE(check.maybe_too_fast);
@@ -68,12 +68,12 @@ TEST(ModalField, TheReconstructionFlagsNonFiniteValuesAndFastComponentsItWrote) 
                                  v.data(), 1e3)
                     .non_finite);
     f.xi_single = f.xi.cast<float>();
-    const FieldCheck slow = field.Reconstruct(f.xi_single.data(), f.rate_single.data(),
+    const StateCheck slow = field.Reconstruct(f.xi_single.data(), f.rate_single.data(),
                                               f.rest.data(), x.data(), v.data(), 1e3);
     EXPECT_FALSE(slow.non_finite);
     EXPECT_FALSE(slow.maybe_too_fast);
     const double fastest = v.cwiseAbs().maxCoeff();
-    const FieldCheck fast = field.Reconstruct(f.xi_single.data(), f.rate_single.data(),
+    const StateCheck fast = field.Reconstruct(f.xi_single.data(), f.rate_single.data(),
                                               f.rest.data(), x.data(), v.data(), 0.5 * fastest);
     EXPECT_FALSE(fast.non_finite);
     EXPECT_TRUE(fast.maybe_too_fast);
