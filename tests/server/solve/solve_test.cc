@@ -206,6 +206,9 @@ TEST(SolveStaticEfg, StretchedBarIsNearlyHomogeneousAndTheSupportsBalance) {
 // ramped by its history gives half the displacement at half the ramp, with the supports pulling
 // back the force.
 TEST(SolveStaticEfg, Liver288CarriesItsWeightAndRespondsLinearlyToARampedForce) {
+  // Heavy validation (15–30 s under the sanitizers): Release build only. The stretched bar and
+  // SolveDynamic run the same path under the sanitizers.
+  if (somasim::testing::kUnderSanitizer) GTEST_SKIP() << "heavy validation: Release build only";
   const std::string dir = testing::MakeTempDir("solve_efg_liver");
   const std::string organ = R"(
 organ {
@@ -262,6 +265,9 @@ analysis { static_solve {} }
 // pressure on its top (nodal forces, as the EFG gets it) it gives the EFG's equilibrium: the
 // largest displacement to 1e-6 relative, and so the field and the supports' reactions.
 TEST(SolveStaticEfgHybrid, Liver288GivesTheEfgEquilibriumUnderItsWeightARampedForceAndAPressure) {
+  // Heavy validation (15–30 s under the sanitizers): Release build only. The stretched bar and
+  // SolveDynamic run the same path under the sanitizers.
+  if (somasim::testing::kUnderSanitizer) GTEST_SKIP() << "heavy validation: Release build only";
   const auto organ = [](const std::string& model) {
     return "organ {\n  id: \"liver\"\n  builtin: \"liver288\"\n  model { " + model +
            " }\n  material { density: 1055 youngs_modulus: 5000 poisson_ratio: 0.35 }\n"
