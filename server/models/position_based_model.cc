@@ -48,6 +48,10 @@ class PositionBasedState final : public TissueState {
   // only: recomputed when either changes.
   std::vector<double> sweep_alpha;  // α̃ = compliance/Δt² [1/kg] (0 in seed mode)
   std::vector<double> sweep_gain;  // 1/(w_i + w_j + α̃) (seed: k/(w_i + w_j)); 0 if w_i + w_j = 0
+  // w_i gain and w_j gain [–], the vector sweep's factors: it then needs no w from the records,
+  // and stores only their x, y and z.
+  std::vector<double> sweep_wi_gain;
+  std::vector<double> sweep_wj_gain;
   std::vector<double> prepared_w;  // the w the factors were computed with, internal order
   double prepared_dt = 0.0;        // and the Δt [s] (0: not yet)
   double last_dt = 0.0;            // [s] of the last accepted step, 0 before any
@@ -88,6 +92,8 @@ struct SweepArrays {
   const double* inverse_rest;
   const double* alpha;
   const double* gain;
+  const double* wi_gain;  // w_i gain: the vector sweep's
+  const double* wj_gain;  // w_j gain
   double* lambda;
 };
 
@@ -137,7 +143,8 @@ double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __r
 // records 0 2, 1 3, 4 6, 5 7, so that unpacks and 128-bit lane selections (vshuff64x2)
 // transpose them; storing pairs 0 4, 1 5, 2 6, 3 7 and uses two-source permutes. On Zen 4 a
 // two-source permute takes a whole multiply slot and a lane selection about 0.6 of one (3–4 %
-// of the sweep).
+// of the sweep). The sweep reads no W (its factors w gain come from the state), so the compiler
+// drops W's lane selections.
 // (The masked forms of unpack, shuffle and extract, all lanes set, are the plain instructions
 // without gcc-12's uninitialised-value warnings.)
 struct Lanes {
@@ -169,24 +176,28 @@ __attribute__((target("avx512f,avx512vl"))) inline Lanes LoadRecords(const doubl
           _mm512_maskz_shuffle_f64x2(0xFF, t1, t3, 0xDD)};
 }
 
-// The inverse of LoadPair.
+// The inverse of LoadPair for x, y, z: lane 3 (w) of the records is not written (masked stores:
+// on Sapphire/Emerald Rapids the sweep is bound by its shuffles, one port's, and this saves one
+// in four of the stores' permutes; −7 to −8 % on gallbladder5400/10).
 __attribute__((target("avx512f,avx512vl"))) inline void StorePair(__m512d record, double* x,
                                                                   const int32_t* offset, int a) {
   const __m256d unused = _mm256_setzero_pd();
-  // The lower half is the register's own ymm: a plain 256-bit store (AVX512VL's encoding reaches
-  // ymm16–31; without it gcc extracts the half with a shuffle, 3–4 % of the sweep on Zen 4).
-  _mm256_store_pd(x + offset[a], __builtin_shufflevector(record, record, 0, 1, 2, 3));
-  _mm256_store_pd(x + offset[a + 4], _mm512_mask_extractf64x4_pd(unused, 0xF, record, 1));
+  // The lower half is the register's own ymm (AVX512VL's encoding reaches ymm16–31; without it
+  // gcc extracts the half with a shuffle, 3–4 % of the sweep on Zen 4).
+  _mm256_mask_store_pd(x + offset[a], 0x7, __builtin_shufflevector(record, record, 0, 1, 2, 3));
+  _mm256_mask_store_pd(x + offset[a + 4], 0x7, _mm512_mask_extractf64x4_pd(unused, 0xF, record, 1));
 }
 
-// The inverse of LoadRecords.
+// The inverse of LoadRecords for x, y, z (the w of a record never changes in a sweep, so lane 3
+// is left as it is and r.w is not read): the y row needs no permute for records 0 1 4 5, whose
+// y sit in lanes 0 1 4 5 already, and one in-lane permute for 2 3 6 7.
 __attribute__((target("avx512f,avx512vl"))) inline void StoreRecords(const Lanes& r, double* x,
                                                                      const int32_t* offset,
                                                                      __m512i low, __m512i high) {
-  const __m512d t0 = _mm512_permutex2var_pd(r.x, low, r.z);   // x0 x1 z0 z1 x4 x5 z4 z5
-  const __m512d t1 = _mm512_permutex2var_pd(r.y, low, r.w);   // y0 y1 w0 w1 y4 y5 w4 w5
-  const __m512d t2 = _mm512_permutex2var_pd(r.x, high, r.z);  // x2 x3 z2 z3 x6 x7 z6 z7
-  const __m512d t3 = _mm512_permutex2var_pd(r.y, high, r.w);  // y2 y3 w2 w3 y6 y7 w6 w7
+  const __m512d t0 = _mm512_permutex2var_pd(r.x, low, r.z);          // x0 x1 z0 z1 x4 x5 z4 z5
+  const __m512d t1 = r.y;                                            // y0 y1 .. .. y4 y5 .. ..
+  const __m512d t2 = _mm512_permutex2var_pd(r.x, high, r.z);         // x2 x3 z2 z3 x6 x7 z6 z7
+  const __m512d t3 = _mm512_mask_permutex_pd(r.y, 0xFF, r.y, 0xEE);  // y2 y3 .. .. y6 y7 .. ..
   StorePair(_mm512_mask_unpacklo_pd(t0, 0xFF, t0, t1), x, offset, 0);
   StorePair(_mm512_mask_unpackhi_pd(t0, 0xFF, t0, t1), x, offset, 1);
   StorePair(_mm512_mask_unpacklo_pd(t2, 0xFF, t2, t3), x, offset, 2);
@@ -234,10 +245,11 @@ __attribute__((target("avx512f,avx512vl"), always_inline)) inline void ProjectLa
   const __m512d gain = _mm512_loadu_pd(s.gain + e);
   const __m512d dlambda = _mm512_maskz_fnmadd_pd(ok, t, gain, zero);
   _mm512_storeu_pd(s.lambda + e, kFirst ? dlambda : _mm512_add_pd(lambda, dlambda));
-  // x_i -= w_i Δλ d/l = x_i + t (w_i gain / l) d, with (w_i gain) / l formed while t is: two
-  // steps after t instead of four. (0 where l = 0: y is 0 there, and those lanes do not move.)
-  const __m512d fi = _mm512_mul_pd(t, _mm512_mul_pd(_mm512_mul_pd(i->w, gain), y));
-  const __m512d fj = _mm512_mul_pd(t, _mm512_mul_pd(_mm512_mul_pd(j->w, gain), y));
+  // x_i -= w_i Δλ d/l = x_i + t (w_i gain / l) d, with w_i gain precomputed (the state's
+  // sweep_wi_gain) and (w_i gain) / l formed while t is: two steps after t instead of four. (0
+  // where l = 0: y is 0 there, and those lanes do not move.)
+  const __m512d fi = _mm512_mul_pd(t, _mm512_mul_pd(_mm512_loadu_pd(s.wi_gain + e), y));
+  const __m512d fj = _mm512_mul_pd(t, _mm512_mul_pd(_mm512_loadu_pd(s.wj_gain + e), y));
   i->x = _mm512_fmadd_pd(fi, dx, i->x);
   i->y = _mm512_fmadd_pd(fi, dy, i->y);
   i->z = _mm512_fmadd_pd(fi, dz, i->z);
@@ -316,6 +328,34 @@ __attribute__((target("avx512f,avx512vl"))) void PredictAvx512(
     _mm256_store_pd(nodes + 4 * p, _mm256_mask_broadcastsd_pd(record, 0x8, _mm_set_sd(wi)));
     w[p] = wi;
   }
+}
+
+// The records back to the public order (see the scalar loop in Advance, whose operations it
+// repeats, so both give the same bits): for node i, x = record (x, y, z) of slot[i] and
+// v = (x - x_start) inverse_dt, written as 3-lane masked vectors (no overrun past the last node),
+// and checked as they are written: the answer is what StateCheck::Add gives for every value.
+__attribute__((target("avx512f,avx512vl"))) StateCheck CopyBackAvx512(
+    size_t n, const int32_t* slot, const double* nodes, const double* x_start, double inverse_dt,
+    double component_limit, double* out_x, double* out_v) {
+  const __m256d vinverse_dt = _mm256_set1_pd(inverse_dt);
+  // x − x and v − v are 0 for finite values and NaN otherwise; their sums stay 0 until a NaN.
+  __m256d finite_sum = _mm256_setzero_pd();
+  __m256d largest_speed = _mm256_setzero_pd();  // max |v| per lane
+  const __m256d sign = _mm256_set1_pd(-0.0);
+  for (size_t i = 0; i < n; ++i) {
+    const __m256d x = _mm256_maskz_load_pd(0x7, nodes + 4 * static_cast<size_t>(slot[i]));
+    const __m256d v =
+        _mm256_mul_pd(_mm256_sub_pd(x, _mm256_maskz_loadu_pd(0x7, x_start + 3 * i)), vinverse_dt);
+    _mm256_mask_storeu_pd(out_x + 3 * i, 0x7, x);
+    _mm256_mask_storeu_pd(out_v + 3 * i, 0x7, v);
+    finite_sum = _mm256_add_pd(finite_sum, _mm256_add_pd(_mm256_sub_pd(x, x), _mm256_sub_pd(v, v)));
+    largest_speed = _mm256_max_pd(largest_speed, _mm256_andnot_pd(sign, v));
+  }
+  StateCheck check;
+  check.non_finite = _mm256_cmp_pd_mask(finite_sum, finite_sum, _CMP_UNORD_Q) != 0;
+  check.maybe_too_fast =
+      _mm256_cmp_pd_mask(largest_speed, _mm256_set1_pd(component_limit), _CMP_GT_OQ) != 0;
+  return check;
 }
 
 #endif
@@ -606,6 +646,8 @@ std::unique_ptr<TissueState> PositionBasedModel::MakeState() const {
   state->good_lambda_.assign(m, 0.0);
   state->sweep_alpha.assign(m, 0.0);
   state->sweep_gain.assign(m, 0.0);
+  state->sweep_wi_gain.assign(m, 0.0);
+  state->sweep_wj_gain.assign(m, 0.0);
   state->cut.assign(m, 0);
   state->prepared_w.assign(nn, 0.0);
   state->prepared_dt = 0.0;
@@ -728,15 +770,23 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
       state->sweep_alpha[s] = alpha;
       // A constraint between two immovable nodes, or cut, is left alone (its λ stays 0).
       const bool inert = !(w_sum > 0.0) || state->cut[static_cast<size_t>(sweep_edge_[s])] != 0;
-      state->sweep_gain[s] = inert ? 0.0 : xpbd ? 1.0 / (w_sum + alpha) : k_seed / w_sum;
+      const double gain = inert ? 0.0 : xpbd ? 1.0 / (w_sum + alpha) : k_seed / w_sum;
+      state->sweep_gain[s] = gain;
+      state->sweep_wi_gain[s] = w1 * gain;
+      state->sweep_wj_gain[s] = w2 * gain;
     }
     std::copy(w, w + n, state->prepared_w.begin());
     state->prepared_dt = dt;
   }
 
-  const SweepArrays arrays{sweep_i4_.data(),          sweep_j4_.data(),
-                           sweep_rest_.data(),        sweep_inv_rest_.data(),
-                           state->sweep_alpha.data(), state->sweep_gain.data(),
+  const SweepArrays arrays{sweep_i4_.data(),
+                           sweep_j4_.data(),
+                           sweep_rest_.data(),
+                           sweep_inv_rest_.data(),
+                           state->sweep_alpha.data(),
+                           state->sweep_gain.data(),
+                           state->sweep_wi_gain.data(),
+                           state->sweep_wj_gain.data(),
                            state->lambda.data()};
   const size_t num_colours = colour_start_.size() - 1;
   int iteration = 0;
@@ -846,6 +896,15 @@ void PositionBasedModel::Advance(const StepInputs& inputs, TissueState* base) co
   double* __restrict out_x = state->positions.data();
   double* __restrict out_v = state->velocities.data();
   StateCheck check;
+#ifdef SOMASIM_PBD_AVX512
+  if (simd_) {
+    check =
+        CopyBackAvx512(n, node_slot_.data(), nodes, px, inverse_dt, component_limit, out_x, out_v);
+    SetStateChecked(state, check.non_finite, check.maybe_too_fast);
+    state->last_dt = dt;
+    return;
+  }
+#endif
   for (size_t i = 0; i < n; ++i) {
     const double* record = nodes + 4 * static_cast<size_t>(node_slot_[i]);
     for (size_t k = 0; k < 3; ++k) {
