@@ -6,10 +6,14 @@
 //    one spring each). A lane's own x and v are loaded once per slice and its forces summed in
 //    a register. A "run" column holds the slice's springs of one offset Δ = other node − lane
 //    node (an edge kind of a structured numbering; lanes without one stay empty): the other
-//    ends are 8 consecutive nodes, whose x and v are loaded as 24 consecutive values; the other
-//    springs sit in gathered columns, whose other ends' x and v are gathered. Runs are 99.99 %
-//    of the columns on the 53³ grid and 94 % on gallbladder5400 (how many lanes a run needs is
-//    chosen per slice, BuildExplicitLayout).
+//    ends are 8 consecutive nodes; the other springs sit in gathered columns, whose other ends'
+//    x and v are gathered. Runs are 99.99 % of the columns on the 53³ grid and 94 % on
+//    gallbladder5400 (how many lanes a run needs is chosen per slice, BuildExplicitLayout).
+//  - the AVX-512 pass transposes each slice's x and v once, into a window of recent slices
+//    (x, y, z, vx, vy, vz rows: MassSpringState::window), as far ahead as the farthest run
+//    column reads; a slice's own x and v and a run column's other ends are then 6 loads each
+//    from the window, wherever the 8 consecutive nodes start, instead of 6 loads and 12 permutes
+//    per column (grid1m −8 % on Emerald Rapids, where the permutes share one port).
 //  - each column stores its 8 forces F (3 vector stores, 0 in empty lanes) into a ring of
 //    recent columns; each slice then subtracts the forces of the springs ending on its nodes
 //    ("incoming columns"). Those of one Δ start in lanes r..7 of one run column and lanes
@@ -38,6 +42,10 @@
 //    broadcast instead of gathered.
 //  - without anchors or grasps nothing is added to a node's force before the pass, which then
 //    neither reads nor clears `pending` (48 bytes per node less).
+//  - the pass's streams (columns, incoming columns) and scratch (ring, window, the state's
+//    constants) live on transparent huge pages where the kernel gives them (huge_pages.h): on the
+//    1M-spring grid they span ~30 MB, and with 4 KiB pages their TLB misses cost ~10 % of the
+//    step under a hypervisor.
 #include "server/models/mass_spring_model.h"
 
 #include <algorithm>
@@ -46,6 +54,7 @@
 #include <cassert>
 #include <cmath>
 #include <limits>
+#include <memory>
 #include <stdexcept>
 #include <string>
 #include <utility>
@@ -73,10 +82,12 @@ struct SlicePass {
   const double* x;  // [m], flat
   const double* v;  // [m/s], flat
   size_t num_nodes;
-  const int32_t* column_start;      // num_slices + 1
-  const int32_t* other3;            // 8 per column
-  const double* rest;               // [m], 8 per column
-  const uint8_t* lanes;             // 1 per column
+  const int32_t* column_start;  // num_slices + 1
+  const int32_t* other3;        // 8 per column
+  const double* rest;           // [m], 8 per column
+  const uint8_t* lanes;         // 1 per column
+  // The AVX-512 pass's: the state's lanes, those of cut springs cleared (F = 0 there).
+  const uint8_t* live_lanes;        // 1 per column
   const double* stiffness_damping;  // 16 per column, or nullptr: `material` instead
   // When the springs share few (k, d) pairs: each lane's pair as an index into `material_kd`
   // (k [N/m], d [N s/m] interleaved; pair 0 is (0, 0): empty lanes and cut springs).
@@ -107,6 +118,15 @@ struct SlicePass {
   double dt;                   // [s]
   double gravity[3];           // [m/s²]
   double component_limit;      // [m/s]: a velocity component above it is flagged
+  // The AVX-512 pass's window of x and v (MassSpringModel::window_slices_): rows x, y, z, vx,
+  // vy, vz of window_mask + 9 values each (64-byte aligned, window_stride apart), node i at
+  // i & window_mask, the first 8 again after the last; slice s + window_lead is copied in at
+  // the start of slice s. column_window: each column's lane 0 other node & window_mask.
+  double* window;
+  size_t window_stride;
+  size_t window_mask;
+  size_t window_lead;
+  const int32_t* column_window;
 };
 
 // Seed 002 eq. 1–3 for one spring: the force F [N] on the lane's node a (the other node b gets
@@ -272,16 +292,14 @@ SOMASIM_MSS_TARGET __attribute__((always_inline)) inline void SpringColumn(
   __m512d k, d;
   if (p.material != nullptr) {
     // 2 bytes per spring instead of 16: the pairs' table stays in L1/L2.
-    const __m128i index = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p.material + 8 * c));
     const size_t uniform = p.column_pair[c];
     if (uniform != 0) {
       // One pair for the whole column (most of a structured mesh): two broadcasts instead of
-      // two gathers, on the lanes whose spring is not cut (index 0).
-      const __m512i wide = _mm512_maskz_cvtepu16_epi64(0xFF, index);
-      const __mmask8 alive = _mm512_test_epi64_mask(wide, wide);
-      k = _mm512_maskz_mov_pd(alive, _mm512_set1_pd(p.material_kd[2 * uniform]));
-      d = _mm512_maskz_mov_pd(alive, _mm512_set1_pd(p.material_kd[2 * uniform + 1]));
+      // two gathers. Cut springs (index 0) are off `lanes` (the state's live lanes): F = 0.
+      k = _mm512_set1_pd(p.material_kd[2 * uniform]);
+      d = _mm512_set1_pd(p.material_kd[2 * uniform + 1]);
     } else {
+      const __m128i index = _mm_loadu_si128(reinterpret_cast<const __m128i*>(p.material + 8 * c));
       const __m256i pair = _mm256_slli_epi32(_mm256_cvtepu16_epi32(index), 1);
       k = Gather(lanes, pair, p.material_kd);
       d = Gather(lanes, pair, p.material_kd + 1);
@@ -308,14 +326,42 @@ SOMASIM_MSS_TARGET __attribute__((always_inline)) inline void SpringColumn(
   _mm512_storeu_pd(out + 16, sz);
 }
 
-// SlicePassScalar, the 8 nodes of a slice in the 8 lanes: the lanes' own x and v are loaded
-// once per slice and their forces summed in registers; each column loads the other nodes' x
-// and v (24 consecutive values, transposed) or gathers them, and stores its forces in the ring
-// of columns, whence later slices take -F (the consecutive and the rotated incoming columns
-// first, each kind in a loop of its own: no branch per column); 1/l comes from rsqrt14 and a
-// third-order correction instead of a square root and a division, which would bound the throughput,
-// and the force is t (x_b - x_a) with the scale t = F/l, so the unit vector is never formed. The
-// slice's integration runs on the flat values, 24 at a time. Results differ from the scalar pass by
+// Copies slice `slice`'s start-of-step x and v into the pass's window, transposed (x of its 8
+// nodes, then y, ...; 0 past the last node), and the window's first 8 nodes also after its last,
+// so that 8 consecutive nodes are one load however they straddle its end.
+SOMASIM_MSS_TARGET inline void FillWindow(const SlicePass& p, size_t slice) {
+  const size_t first = 8 * slice;
+  const size_t count = std::min<size_t>(8, p.num_nodes - first);
+  const uint32_t valid = (1U << (3 * count)) - 1U;
+  const auto m0 = static_cast<__mmask8>(valid), m1 = static_cast<__mmask8>(valid >> 8U),
+             m2 = static_cast<__mmask8>(valid >> 16U);
+  const double* const xs = p.x + 3 * first;
+  const double* const vs = p.v + 3 * first;
+  __m512d rows[6];
+  Deinterleave(_mm512_maskz_loadu_pd(m0, xs), _mm512_maskz_loadu_pd(m1, xs + 8),
+               _mm512_maskz_loadu_pd(m2, xs + 16), &rows[0], &rows[1], &rows[2]);
+  Deinterleave(_mm512_maskz_loadu_pd(m0, vs), _mm512_maskz_loadu_pd(m1, vs + 8),
+               _mm512_maskz_loadu_pd(m2, vs + 16), &rows[3], &rows[4], &rows[5]);
+  const size_t place = first & p.window_mask;
+  for (size_t r = 0; r < 6; ++r) _mm512_store_pd(p.window + r * p.window_stride + place, rows[r]);
+  if (place == 0) {
+    for (size_t r = 0; r < 6; ++r) {
+      _mm512_store_pd(p.window + r * p.window_stride + p.window_mask + 1, rows[r]);
+    }
+  }
+}
+
+// SlicePassScalar, the 8 nodes of a slice in the 8 lanes. The start-of-step x and v reach the
+// pass through a window of recent slices, transposed once per slice as the slice enters it
+// (FillWindow, window_lead slices ahead): the lanes' own x and v are 6 loads, and so are a run
+// column's other nodes' (8 consecutive nodes: 6 loads wherever they start), with no transpose
+// per column; gathered columns gather theirs from x and v. The lanes' forces are summed in
+// registers; each column stores its forces in the ring of columns, whence later slices take -F
+// (the rotated incoming columns first, then the gathered ones, each kind in a loop of its own: no
+// branch per column); 1/l comes from rsqrt14 and a third-order correction instead of a square
+// root and a division, which would bound the throughput, and the force is t (x_b - x_a) with the
+// scale t = F/l, so the unit vector is never formed. The slice's 8 nodes are integrated in their
+// lanes and transposed back once, for x and for v. Results differ from the scalar pass by
 // rounding only.
 SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
   // Local copies: the scatters could alias `pass` as far as the compiler knows.
@@ -323,49 +369,42 @@ SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
   const __m512d dt = _mm512_set1_pd(p.dt);
   const __m512d component_limit = _mm512_set1_pd(p.component_limit);
   __mmask8 non_finite = 0, maybe_too_fast = 0;
-  const double gx = p.gravity[0], gy = p.gravity[1], gz = p.gravity[2];
-  // Gravity in flat order over 24 values (8 nodes), and each flat value's node within 8.
-  const __m512d gravity[3] = {_mm512_setr_pd(gx, gy, gz, gx, gy, gz, gx, gy),
-                              _mm512_setr_pd(gz, gx, gy, gz, gx, gy, gz, gx),
-                              _mm512_setr_pd(gy, gz, gx, gy, gz, gx, gy, gz)};
-  const __m512i node_of[3] = {Indices(0, 0, 0, 1, 1, 1, 2, 2), Indices(2, 3, 3, 3, 4, 4, 4, 5),
-                              Indices(5, 5, 6, 6, 6, 7, 7, 7)};
   const size_t num_slices = (p.num_nodes + 7) / 8;
+  const size_t stride = p.window_stride;
+  for (size_t slice = 0; slice < std::min(p.window_lead, num_slices); ++slice) {
+    FillWindow(p, slice);
+  }
   for (size_t slice = 0; slice < num_slices; ++slice) {
+    if (slice + p.window_lead < num_slices) FillWindow(p, slice + p.window_lead);
     const size_t first = 8 * slice;
     const size_t count = std::min<size_t>(8, p.num_nodes - first);
-    // Masks of the slice's flat values: 3 × count of the 24.
-    const uint32_t valid = (1U << (3 * count)) - 1U;
-    const __mmask8 chunk[3] = {static_cast<__mmask8>(valid), static_cast<__mmask8>(valid >> 8U),
-                               static_cast<__mmask8>(valid >> 16U)};
-    const double* const xs = p.x + 3 * first;
-    const double* const vs = p.v + 3 * first;
-    __m512d xa, ya, za, vxa, vya, vza;
-    Deinterleave(_mm512_maskz_loadu_pd(chunk[0], xs), _mm512_maskz_loadu_pd(chunk[1], xs + 8),
-                 _mm512_maskz_loadu_pd(chunk[2], xs + 16), &xa, &ya, &za);
-    Deinterleave(_mm512_maskz_loadu_pd(chunk[0], vs), _mm512_maskz_loadu_pd(chunk[1], vs + 8),
-                 _mm512_maskz_loadu_pd(chunk[2], vs + 16), &vxa, &vya, &vza);
+    const double* const own = p.window + (first & p.window_mask);
+    const Lanes8 a{_mm512_load_pd(own),
+                   _mm512_load_pd(own + stride),
+                   _mm512_load_pd(own + 2 * stride),
+                   _mm512_load_pd(own + 3 * stride),
+                   _mm512_load_pd(own + 4 * stride),
+                   _mm512_load_pd(own + 5 * stride)};
     __m512d fx = _mm512_setzero_pd(), fy = _mm512_setzero_pd(), fz = _mm512_setzero_pd();
-    const Lanes8 own{xa, ya, za, vxa, vya, vza};
     const auto gathered_start = static_cast<size_t>(p.gathered_column[slice]);
     for (auto c = static_cast<size_t>(p.column_start[slice]); c < gathered_start; ++c) {
-      const double* const xo = p.x + p.other3[8 * c];
-      const double* const vo = p.v + p.other3[8 * c];
-      Lanes8 other;
-      Deinterleave(_mm512_loadu_pd(xo), _mm512_loadu_pd(xo + 8), _mm512_loadu_pd(xo + 16), &other.x,
-                   &other.y, &other.z);
-      Deinterleave(_mm512_loadu_pd(vo), _mm512_loadu_pd(vo + 8), _mm512_loadu_pd(vo + 16),
-                   &other.vx, &other.vy, &other.vz);
-      SpringColumn(p, c, p.lanes[c], own, other, &fx, &fy, &fz);
+      const double* const o = p.window + p.column_window[c];
+      const Lanes8 other{_mm512_loadu_pd(o),
+                         _mm512_loadu_pd(o + stride),
+                         _mm512_loadu_pd(o + 2 * stride),
+                         _mm512_loadu_pd(o + 3 * stride),
+                         _mm512_loadu_pd(o + 4 * stride),
+                         _mm512_loadu_pd(o + 5 * stride)};
+      SpringColumn(p, c, p.live_lanes[c], a, other, &fx, &fy, &fz);
     }
     const auto columns_end = static_cast<size_t>(p.column_start[slice + 1]);
     for (size_t c = gathered_start; c < columns_end; ++c) {
-      const __mmask8 lanes = p.lanes[c];
+      const __mmask8 lanes = p.live_lanes[c];
       const __m256i b = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p.other3 + 8 * c));
       const Lanes8 other{Gather(lanes, b, p.x),     Gather(lanes, b, p.x + 1),
                          Gather(lanes, b, p.x + 2), Gather(lanes, b, p.v),
                          Gather(lanes, b, p.v + 1), Gather(lanes, b, p.v + 2)};
-      SpringColumn(p, c, lanes, own, other, &fx, &fy, &fz);
+      SpringColumn(p, c, lanes, a, other, &fx, &fy, &fz);
     }
     // -F of the springs ending on the slice's nodes, from their columns' places in the ring.
     const auto rotated_end = static_cast<size_t>(p.gathered_incoming[slice]);
@@ -401,9 +440,14 @@ SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
     fx = _mm512_sub_pd(fx, incoming_x);
     fy = _mm512_sub_pd(fy, incoming_y);
     fz = _mm512_sub_pd(fz, incoming_z);
-    __m512d sum[3];
-    Interleave(fx, fy, fz, &sum[0], &sum[1], &sum[2]);
+    // Masks of the slice's flat values (3 × count of the 24) and of its lanes.
+    const uint32_t valid = (1U << (3 * count)) - 1U;
+    const __mmask8 chunk[3] = {static_cast<__mmask8>(valid), static_cast<__mmask8>(valid >> 8U),
+                               static_cast<__mmask8>(valid >> 16U)};
+    const auto lanes = static_cast<__mmask8>((1U << count) - 1U);
     if (!p.integrate) {
+      __m512d sum[3];
+      Interleave(fx, fy, fz, &sum[0], &sum[1], &sum[2]);
       double* const pending = p.pending + 3 * first;
       for (size_t k = 0; k < 3; ++k) {
         _mm512_mask_storeu_pd(
@@ -412,33 +456,58 @@ SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
       }
       continue;
     }
-    const __m512d w8 =
-        _mm512_maskz_loadu_pd(static_cast<__mmask8>((1U << count) - 1U), p.inverse_mass + first);
-    for (size_t k = 0; k < 3; ++k) {
-      const size_t e = 8 * k;  // flat offset of the chunk within the slice
-      __m512d f = sum[k];
-      if (p.pending != nullptr) {
-        double* const pending = p.pending + 3 * first + e;
-        f = _mm512_add_pd(f, _mm512_maskz_loadu_pd(chunk[k], pending));
-        _mm512_mask_storeu_pd(pending, chunk[k], _mm512_setzero_pd());
+    // What anchors and grasps added (pending, zeroed once read) and the external forces, in
+    // the lanes.
+    if (p.pending != nullptr) {
+      double* const pending = p.pending + 3 * first;
+      __m512d px, py, pz;
+      Deinterleave(_mm512_maskz_loadu_pd(chunk[0], pending),
+                   _mm512_maskz_loadu_pd(chunk[1], pending + 8),
+                   _mm512_maskz_loadu_pd(chunk[2], pending + 16), &px, &py, &pz);
+      for (size_t k = 0; k < 3; ++k) {
+        _mm512_mask_storeu_pd(pending + 8 * k, chunk[k], _mm512_setzero_pd());
       }
-      if (p.external != nullptr) {
-        f = _mm512_add_pd(f, _mm512_maskz_loadu_pd(chunk[k], p.external + 3 * first + e));
-      }
-      const __m512d w = _mm512_maskz_permutexvar_pd(0xFF, node_of[k], w8);
-      // Massless nodes (w = 0) do not move: no gravity on them either.
-      const __m512d g =
-          _mm512_maskz_mov_pd(_mm512_cmp_pd_mask(w, _mm512_setzero_pd(), _CMP_GT_OQ), gravity[k]);
-      const __m512d v0 = _mm512_maskz_loadu_pd(chunk[k], vs + e);
-      const __m512d x0 = _mm512_maskz_loadu_pd(chunk[k], xs + e);
-      const __m512d v1 = _mm512_fmadd_pd(dt, _mm512_fmadd_pd(w, f, g), v0);
-      const __m512d x1 = _mm512_fmadd_pd(dt, v1, x0);
-      _mm512_mask_storeu_pd(p.moved_v + 3 * first + e, chunk[k], v1);
-      _mm512_mask_storeu_pd(p.moved_x + 3 * first + e, chunk[k], x1);
-      non_finite |= _mm512_mask_cmp_pd_mask(chunk[k], _mm512_sub_pd(x1, x1), _mm512_sub_pd(v1, v1),
-                                            _CMP_UNORD_Q);
+      fx = _mm512_add_pd(fx, px);
+      fy = _mm512_add_pd(fy, py);
+      fz = _mm512_add_pd(fz, pz);
+    }
+    if (p.external != nullptr) {
+      const double* const external = p.external + 3 * first;
+      __m512d ex, ey, ez;
+      Deinterleave(_mm512_maskz_loadu_pd(chunk[0], external),
+                   _mm512_maskz_loadu_pd(chunk[1], external + 8),
+                   _mm512_maskz_loadu_pd(chunk[2], external + 16), &ex, &ey, &ez);
+      fx = _mm512_add_pd(fx, ex);
+      fy = _mm512_add_pd(fy, ey);
+      fz = _mm512_add_pd(fz, ez);
+    }
+    const __m512d w = _mm512_maskz_loadu_pd(lanes, p.inverse_mass + first);
+    // Massless nodes (w = 0) do not move: no gravity on them either.
+    const __mmask8 moves = _mm512_cmp_pd_mask(w, _mm512_setzero_pd(), _CMP_GT_OQ);
+    const __m512d vx = _mm512_fmadd_pd(
+        dt, _mm512_fmadd_pd(w, fx, _mm512_maskz_mov_pd(moves, _mm512_set1_pd(p.gravity[0]))), a.vx);
+    const __m512d vy = _mm512_fmadd_pd(
+        dt, _mm512_fmadd_pd(w, fy, _mm512_maskz_mov_pd(moves, _mm512_set1_pd(p.gravity[1]))), a.vy);
+    const __m512d vz = _mm512_fmadd_pd(
+        dt, _mm512_fmadd_pd(w, fz, _mm512_maskz_mov_pd(moves, _mm512_set1_pd(p.gravity[2]))), a.vz);
+    const __m512d x = _mm512_fmadd_pd(dt, vx, a.x);
+    const __m512d y = _mm512_fmadd_pd(dt, vy, a.y);
+    const __m512d z = _mm512_fmadd_pd(dt, vz, a.z);
+    for (const auto& [position, velocity] :
+         {std::pair{x, vx}, std::pair{y, vy}, std::pair{z, vz}}) {
+      non_finite |= _mm512_mask_cmp_pd_mask(lanes, _mm512_sub_pd(position, position),
+                                            _mm512_sub_pd(velocity, velocity), _CMP_UNORD_Q);
       maybe_too_fast |=
-          _mm512_mask_cmp_pd_mask(chunk[k], _mm512_abs_pd(v1), component_limit, _CMP_GT_OQ);
+          _mm512_mask_cmp_pd_mask(lanes, _mm512_abs_pd(velocity), component_limit, _CMP_GT_OQ);
+    }
+    __m512d flat[3];
+    Interleave(vx, vy, vz, &flat[0], &flat[1], &flat[2]);
+    for (size_t k = 0; k < 3; ++k) {
+      _mm512_mask_storeu_pd(p.moved_v + 3 * first + 8 * k, chunk[k], flat[k]);
+    }
+    Interleave(x, y, z, &flat[0], &flat[1], &flat[2]);
+    for (size_t k = 0; k < 3; ++k) {
+      _mm512_mask_storeu_pd(p.moved_x + 3 * first + 8 * k, chunk[k], flat[k]);
     }
   }
   return {non_finite != 0, maybe_too_fast != 0};
@@ -459,7 +528,7 @@ StateCheck RunSlicePass(const SlicePass& p) {
 
 // Points the pass at the state's spring constants in whichever form it holds them.
 void SetSpringConstants(const MassSpringState& state, const std::vector<double>& material_kd,
-                        const std::vector<uint16_t>& column_pair, SlicePass* pass) {
+                        const HugePageVector<uint16_t>& column_pair, SlicePass* pass) {
   if (!state.column_material.empty()) {
     pass->material = state.column_material.data();
     pass->material_kd = material_kd.data();
@@ -467,6 +536,20 @@ void SetSpringConstants(const MassSpringState& state, const std::vector<double>&
   } else {
     pass->stiffness_damping = state.column_stiffness_damping.data();
   }
+}
+
+// Points the pass at the state's window (MassSpringModel::window_slices_), 64-byte aligned.
+void SetWindow(const MassSpringState& state, int32_t window_slices, int32_t window_lead,
+               const HugePageVector<int32_t>& column_window, SlicePass* pass) {
+  const size_t span = 8 * static_cast<size_t>(window_slices);
+  void* start = state.window.data();
+  size_t space = state.window.size() * sizeof(double);
+  pass->window =
+      static_cast<double*>(std::align(64, 6 * (span + 8) * sizeof(double), start, space));
+  pass->window_stride = span + 8;
+  pass->window_mask = span - 1;
+  pass->window_lead = static_cast<size_t>(window_lead);
+  pass->column_window = column_window.data();
 }
 
 // Values (>= 0) that agree to kMergeTolerance relative become one: each group of values sorted
@@ -960,6 +1043,23 @@ void MassSpringModel::BuildExplicitLayout() {
     }
     slice_incoming_start_.push_back(static_cast<int32_t>(incoming_lanes_.size()));
   }
+  // The window of the AVX-512 pass (SlicePass::window): a run column of slice s reads the
+  // nodes 8 s + Δ .. + 7, in slices s - 1 (Δ < 0) to s + (Δ + 7) / 8; the pass fills slice
+  // s + lead at the start of slice s, so the window must hold lead + 2 slices.
+  window_lead_ = 0;
+  column_window_.assign(column_lanes_.size(), 0);
+  for (size_t slice = 0; slice < num_slices; ++slice) {
+    for (auto c = static_cast<size_t>(slice_column_start_[slice]);
+         c < static_cast<size_t>(slice_gathered_column_[slice]); ++c) {
+      const int64_t offset = column_other3_[8 * c] / 3 - static_cast<int64_t>(8 * slice);
+      window_lead_ = std::max(window_lead_, static_cast<int32_t>((offset + 7) / 8));
+    }
+  }
+  window_slices_ = 1;
+  while (window_slices_ < window_lead_ + 2) window_slices_ *= 2;
+  for (size_t c = 0; c < column_lanes_.size(); ++c) {
+    column_window_[c] = (column_other3_[8 * c] / 3) & (8 * window_slices_ - 1);
+  }
   // The distinct (k, d) pairs, exactly (after MergeNearlyEqual): when each is shared by 8 springs
   // or more on average (structured meshes: 20 pairs for the 1M springs of a 53³ grid) and the
   // table stays small, the state keeps a 2-byte index per spring instead of k and d (16 bytes).
@@ -1007,6 +1107,9 @@ std::unique_ptr<TissueState> MassSpringModel::MakeState() const {
   state->damping = damping_;
   // The ring's columns and its zero column (never written).
   state->column_forces.assign(24 * (static_cast<size_t>(ring_columns_) + 1), 0.0);
+  // The pass's window: 6 rows of 8 window_slices_ + 8 values, 64-byte aligned (+ 8 to align).
+  state->window.assign(6 * (8 * static_cast<size_t>(window_slices_) + 8) + 8, 0.0);
+  state->column_lanes = column_lanes_;
   if (!spring_material_.empty()) {
     state->column_material.assign(column_rest_.size(), 0);
     for (size_t s = 0; s < spring_slot_.size(); ++s) {
@@ -1041,6 +1144,7 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   pass.other3 = column_other3_.data();
   pass.rest = column_rest_.data();
   pass.lanes = column_lanes_.data();
+  pass.live_lanes = ms.column_lanes.data();
   SetSpringConstants(ms, material_kd_, column_pair_, &pass);
   pass.gathered_column = slice_gathered_column_.data();
   pass.incoming_start = slice_incoming_start_.data();
@@ -1049,6 +1153,7 @@ void MassSpringModel::InternalForces(const TissueState& state, mesh::Points* for
   pass.gathered_incoming = slice_gathered_incoming_.data();
   pass.ring = ms.column_forces.data();
   pass.ring_mask = static_cast<size_t>(ring_columns_) - 1;
+  SetWindow(ms, window_slices_, window_lead_, column_window_, &pass);
   pass.pending = forces->data();
   pass.integrate = false;
   RunSlicePass(pass);
@@ -1114,6 +1219,7 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.other3 = column_other3_.data();
   pass.rest = column_rest_.data();
   pass.lanes = column_lanes_.data();
+  pass.live_lanes = state->column_lanes.data();
   SetSpringConstants(*state, material_kd_, column_pair_, &pass);
   pass.gathered_column = slice_gathered_column_.data();
   pass.incoming_start = slice_incoming_start_.data();
@@ -1122,6 +1228,7 @@ void MassSpringModel::Advance(const StepInputs& inputs, TissueState* base) const
   pass.gathered_incoming = slice_gathered_incoming_.data();
   pass.ring = state->column_forces.data();
   pass.ring_mask = static_cast<size_t>(ring_columns_) - 1;
+  SetWindow(*state, window_slices_, window_lead_, column_window_, &pass);
   pass.pending = anchor_nodes_.empty() && inputs.attachments.empty() ? nullptr : pending;
   pass.integrate = true;
   pass.external = inputs.external_forces != nullptr ? inputs.external_forces->data() : nullptr;
@@ -1204,6 +1311,8 @@ int32_t MassSpringModel::Cut(const SweptQuad& sweep, TissueState* base) const {
       state->stiffness[s] = 0.0;
       state->damping[s] = 0.0;
       const auto slot = static_cast<size_t>(spring_slot_[s]);
+      state->column_lanes[slot / 8] =
+          static_cast<uint8_t>(state->column_lanes[slot / 8] & ~(1U << (slot % 8)));
       if (!state->column_material.empty()) {
         state->column_material[slot] = 0;  // the pair (0, 0)
       } else {

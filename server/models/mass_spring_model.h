@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
+#include "server/models/huge_pages.h"
 #include "server/models/tissue_model.h"
 
 namespace somasim::models {
@@ -155,9 +156,9 @@ class MassSpringModel final : public TissueModel {
   std::vector<int32_t> slice_column_start_;  // num_slices + 1: columns of each slice
   // 8 per column: 3 × the lane's other node (a gathered column's empty lanes: 0; a run
   // column's: the node lane 0's + l would be).
-  std::vector<int32_t> column_other3_;
-  std::vector<double> column_rest_;    // [m], 8 per column: l0 (0: empty)
-  std::vector<uint8_t> column_lanes_;  // 1 per column: bit l set when lane l has a spring
+  HugePageVector<int32_t> column_other3_;
+  HugePageVector<double> column_rest_;    // [m], 8 per column: l0 (0: empty)
+  HugePageVector<uint8_t> column_lanes_;  // 1 per column: bit l set when lane l has a spring
   // num_slices: each slice's first gathered column (after its run columns).
   std::vector<int32_t> slice_gathered_column_;
   std::vector<int32_t> spring_slot_;  // num_springs: 8 × column + lane of each spring
@@ -173,18 +174,26 @@ class MassSpringModel final : public TissueModel {
   std::vector<uint16_t> spring_material_;
   // With the pairs: each column's one pair when all its springs have it (cut ones have pair 0
   // in the state), else 0.
-  std::vector<uint16_t> column_pair_;
+  HugePageVector<uint16_t> column_pair_;
   // Each column's forces go to a ring (MassSpringState::column_forces) of ring_columns_ columns
   // (24 doubles each: x of the 8 lanes, then y, then z) and one zero column after them (never
   // written), whence the other nodes' slices take them: a slice's rotated incoming columns (one
   // per Δ of run columns ending on it: lanes r..7 of one ring column and 0..r-1 of another, or
   // of the zero column), then gathered ones (column k: each lane's k-th other spring).
-  int32_t ring_columns_ = 1;                   // a power of two
+  int32_t ring_columns_ = 1;  // a power of two
+  // The AVX-512 pass reads the nodes' start-of-step x and v from a window of recent slices
+  // (MassSpringState::window: x, y, z, vx, vy, vz rows of 8 window_slices_ nodes, a node at
+  // its index mod 8 window_slices_, and a copy of the first 8 after the last), filled
+  // window_lead_ slices ahead: a run column's other nodes are then 6 loads, with no transpose.
+  int32_t window_slices_ = 1;  // a power of two >= window_lead_ + 2
+  int32_t window_lead_ = 0;    // slices: the farthest a run column reads past its own slice
+  // Per column: lane 0's other node mod 8 window_slices_ (a run column's place in the window).
+  HugePageVector<int32_t> column_window_;
   std::vector<int32_t> slice_incoming_start_;  // num_slices + 1: incoming columns of each slice
   // 8 per incoming column: rotated, the two ring columns' indices and r; gathered, each lane's
   // ring index of the x.
-  std::vector<int32_t> incoming_slot_;
-  std::vector<uint8_t> incoming_lanes_;  // 1 per incoming column: lanes with a spring
+  HugePageVector<int32_t> incoming_slot_;
+  HugePageVector<uint8_t> incoming_lanes_;  // 1 per incoming column: lanes with a spring
   // num_slices: each slice's first gathered incoming column (after its rotated ones).
   std::vector<int32_t> slice_gathered_incoming_;
   // --- end of explicit-step data ---

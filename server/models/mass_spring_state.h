@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
+#include "server/models/huge_pages.h"
 #include "server/models/tissue_model.h"
 
 namespace somasim::models {
@@ -26,14 +27,21 @@ class MassSpringState final : public TissueState {
   // --- explicit-step scratch (mass_spring_model.cc) ---
   // stiffness and damping in the explicit layout (16 per column: k of the 8 lanes [N/m], then d
   // [N s/m]; 0 in empty lanes). MakeState and Cut keep them equal to the two vectors above.
-  std::vector<double> column_stiffness_damping;
+  HugePageVector<double> column_stiffness_damping;
   // Or, when the model's springs share few (k, d) pairs (MassSpringModel::material_kd_), each
   // lane's pair (8 per column; 0: (0, 0), an empty lane or a cut spring). Exactly one of the
   // two is non-empty.
-  std::vector<uint16_t> column_material;
+  HugePageVector<uint16_t> column_material;
+  // The lanes of each column (1 per column, bit l: lane l) whose spring is not cut: the model's
+  // (MassSpringModel::column_lanes_) less those Cut has removed.
+  HugePageVector<uint8_t> column_lanes;
   // The ring of the latest columns' spring forces [N] (24 per column: x, y, z of the 8 lanes).
   // Scratch, also of InternalForces on a const state.
-  mutable std::vector<double> column_forces;
+  mutable HugePageVector<double> column_forces;
+  // The AVX-512 pass's window of the start-of-step x and v of recent slices (see
+  // MassSpringModel::window_slices_): 6 rows of 8 W + 8 values, and 8 to align them to 64 bytes.
+  // Scratch, also of InternalForces on a const state.
+  mutable HugePageVector<double> window;
   // --- end of explicit-step scratch ---
   // --- implicit-step scratch (mass_spring_implicit.cc) ---
   // Per spring and one zero dummy spring past them (records of 8): w_s (x, y, z), a_s, K_s (v_i -

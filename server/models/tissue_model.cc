@@ -5,6 +5,7 @@
 #include <cstring>
 
 #include "server/models/cpu_features.h"
+#include "server/models/huge_pages.h"
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
 #include <immintrin.h>
@@ -134,6 +135,11 @@ void TissueModel::InitialiseState(const mesh::Points& rest, TissueState* state) 
   state->velocities = mesh::Points::Zero(3, rest.cols());
   state->last_good_positions_ = rest;
   state->last_good_velocities_ = state->velocities;
+  // Large organs' x and v on huge pages where the kernel can (huge_pages.h): a best effort.
+  for (mesh::Points* points : {&state->positions, &state->velocities, &state->last_good_positions_,
+                               &state->last_good_velocities_}) {
+    AdviseHugePages(points->data(), static_cast<size_t>(points->size()) * sizeof(double));
+  }
   state->time = 0.0;
   state->counters = {};
 }
