@@ -351,6 +351,17 @@ SOMASIM_MSS_TARGET inline void FillWindow(const SlicePass& p, size_t slice) {
   }
 }
 
+// The x, y, z, vx, vy, vz of the 8 consecutive nodes whose x is at `at` in the window (rows
+// `stride` apart), wherever they start.
+SOMASIM_MSS_TARGET inline Lanes8 WindowLanes(const double* at, size_t stride) {
+  return {_mm512_loadu_pd(at),
+          _mm512_loadu_pd(at + stride),
+          _mm512_loadu_pd(at + 2 * stride),
+          _mm512_loadu_pd(at + 3 * stride),
+          _mm512_loadu_pd(at + 4 * stride),
+          _mm512_loadu_pd(at + 5 * stride)};
+}
+
 // SlicePassScalar, the 8 nodes of a slice in the 8 lanes. The start-of-step x and v reach the
 // pass through a window of recent slices, transposed once per slice as the slice enters it
 // (FillWindow, window_lead slices ahead): the lanes' own x and v are 6 loads, and so are a run
@@ -378,23 +389,11 @@ SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
     if (slice + p.window_lead < num_slices) FillWindow(p, slice + p.window_lead);
     const size_t first = 8 * slice;
     const size_t count = std::min<size_t>(8, p.num_nodes - first);
-    const double* const own = p.window + (first & p.window_mask);
-    const Lanes8 a{_mm512_load_pd(own),
-                   _mm512_load_pd(own + stride),
-                   _mm512_load_pd(own + 2 * stride),
-                   _mm512_load_pd(own + 3 * stride),
-                   _mm512_load_pd(own + 4 * stride),
-                   _mm512_load_pd(own + 5 * stride)};
+    const Lanes8 a = WindowLanes(p.window + (first & p.window_mask), stride);
     __m512d fx = _mm512_setzero_pd(), fy = _mm512_setzero_pd(), fz = _mm512_setzero_pd();
     const auto gathered_start = static_cast<size_t>(p.gathered_column[slice]);
     for (auto c = static_cast<size_t>(p.column_start[slice]); c < gathered_start; ++c) {
-      const double* const o = p.window + p.column_window[c];
-      const Lanes8 other{_mm512_loadu_pd(o),
-                         _mm512_loadu_pd(o + stride),
-                         _mm512_loadu_pd(o + 2 * stride),
-                         _mm512_loadu_pd(o + 3 * stride),
-                         _mm512_loadu_pd(o + 4 * stride),
-                         _mm512_loadu_pd(o + 5 * stride)};
+      const Lanes8 other = WindowLanes(p.window + p.column_window[c], stride);
       SpringColumn(p, c, p.live_lanes[c], a, other, &fx, &fy, &fz);
     }
     const auto columns_end = static_cast<size_t>(p.column_start[slice + 1]);
