@@ -326,22 +326,37 @@ SOMASIM_MSS_TARGET __attribute__((always_inline)) inline void SpringColumn(
   _mm512_storeu_pd(out + 16, sz);
 }
 
+// The masks of the flat values (3 chunks of 8) of a slice of `count` nodes: 3 × count of the 24.
+inline std::array<__mmask8, 3> FlatChunks(size_t count) {
+  const uint32_t valid = (1U << (3 * count)) - 1U;
+  return {static_cast<__mmask8>(valid), static_cast<__mmask8>(valid >> 8U),
+          static_cast<__mmask8>(valid >> 16U)};
+}
+
+// The x, y and z of up to 8 nodes from their flat values at `flat` (chunk: FlatChunks; 0 in the
+// values past the last node), and the inverse: masked stores of the existing values.
+SOMASIM_MSS_TARGET inline void LoadFlat(const double* flat, const std::array<__mmask8, 3>& chunk,
+                                        __m512d* x, __m512d* y, __m512d* z) {
+  Deinterleave(_mm512_maskz_loadu_pd(chunk[0], flat), _mm512_maskz_loadu_pd(chunk[1], flat + 8),
+               _mm512_maskz_loadu_pd(chunk[2], flat + 16), x, y, z);
+}
+SOMASIM_MSS_TARGET inline void StoreFlat(__m512d x, __m512d y, __m512d z,
+                                         const std::array<__mmask8, 3>& chunk, double* flat) {
+  __m512d values[3];
+  Interleave(x, y, z, &values[0], &values[1], &values[2]);
+  for (size_t k = 0; k < 3; ++k) _mm512_mask_storeu_pd(flat + 8 * k, chunk[k], values[k]);
+}
+
 // Copies slice `slice`'s start-of-step x and v into the pass's window, transposed (x of its 8
 // nodes, then y, ...; 0 past the last node), and the window's first 8 nodes also after its last,
 // so that 8 consecutive nodes are one load however they straddle its end.
 SOMASIM_MSS_TARGET inline void FillWindow(const SlicePass& p, size_t slice) {
   const size_t first = 8 * slice;
   const size_t count = std::min<size_t>(8, p.num_nodes - first);
-  const uint32_t valid = (1U << (3 * count)) - 1U;
-  const auto m0 = static_cast<__mmask8>(valid), m1 = static_cast<__mmask8>(valid >> 8U),
-             m2 = static_cast<__mmask8>(valid >> 16U);
-  const double* const xs = p.x + 3 * first;
-  const double* const vs = p.v + 3 * first;
+  const std::array<__mmask8, 3> chunk = FlatChunks(count);
   __m512d rows[6];
-  Deinterleave(_mm512_maskz_loadu_pd(m0, xs), _mm512_maskz_loadu_pd(m1, xs + 8),
-               _mm512_maskz_loadu_pd(m2, xs + 16), &rows[0], &rows[1], &rows[2]);
-  Deinterleave(_mm512_maskz_loadu_pd(m0, vs), _mm512_maskz_loadu_pd(m1, vs + 8),
-               _mm512_maskz_loadu_pd(m2, vs + 16), &rows[3], &rows[4], &rows[5]);
+  LoadFlat(p.x + 3 * first, chunk, &rows[0], &rows[1], &rows[2]);
+  LoadFlat(p.v + 3 * first, chunk, &rows[3], &rows[4], &rows[5]);
   const size_t place = first & p.window_mask;
   for (size_t r = 0; r < 6; ++r) _mm512_store_pd(p.window + r * p.window_stride + place, rows[r]);
   if (place == 0) {
@@ -439,10 +454,8 @@ SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
     fx = _mm512_sub_pd(fx, incoming_x);
     fy = _mm512_sub_pd(fy, incoming_y);
     fz = _mm512_sub_pd(fz, incoming_z);
-    // Masks of the slice's flat values (3 × count of the 24) and of its lanes.
-    const uint32_t valid = (1U << (3 * count)) - 1U;
-    const __mmask8 chunk[3] = {static_cast<__mmask8>(valid), static_cast<__mmask8>(valid >> 8U),
-                               static_cast<__mmask8>(valid >> 16U)};
+    // Masks of the slice's flat values and of its lanes.
+    const std::array<__mmask8, 3> chunk = FlatChunks(count);
     const auto lanes = static_cast<__mmask8>((1U << count) - 1U);
     if (!p.integrate) {
       __m512d sum[3];
@@ -460,9 +473,7 @@ SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
     if (p.pending != nullptr) {
       double* const pending = p.pending + 3 * first;
       __m512d px, py, pz;
-      Deinterleave(_mm512_maskz_loadu_pd(chunk[0], pending),
-                   _mm512_maskz_loadu_pd(chunk[1], pending + 8),
-                   _mm512_maskz_loadu_pd(chunk[2], pending + 16), &px, &py, &pz);
+      LoadFlat(pending, chunk, &px, &py, &pz);
       for (size_t k = 0; k < 3; ++k) {
         _mm512_mask_storeu_pd(pending + 8 * k, chunk[k], _mm512_setzero_pd());
       }
@@ -471,11 +482,8 @@ SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
       fz = _mm512_add_pd(fz, pz);
     }
     if (p.external != nullptr) {
-      const double* const external = p.external + 3 * first;
       __m512d ex, ey, ez;
-      Deinterleave(_mm512_maskz_loadu_pd(chunk[0], external),
-                   _mm512_maskz_loadu_pd(chunk[1], external + 8),
-                   _mm512_maskz_loadu_pd(chunk[2], external + 16), &ex, &ey, &ez);
+      LoadFlat(p.external + 3 * first, chunk, &ex, &ey, &ez);
       fx = _mm512_add_pd(fx, ex);
       fy = _mm512_add_pd(fy, ey);
       fz = _mm512_add_pd(fz, ez);
@@ -499,15 +507,8 @@ SOMASIM_MSS_TARGET StateCheck SlicePassAvx512(const SlicePass& pass) {
       maybe_too_fast |=
           _mm512_mask_cmp_pd_mask(lanes, _mm512_abs_pd(velocity), component_limit, _CMP_GT_OQ);
     }
-    __m512d flat[3];
-    Interleave(vx, vy, vz, &flat[0], &flat[1], &flat[2]);
-    for (size_t k = 0; k < 3; ++k) {
-      _mm512_mask_storeu_pd(p.moved_v + 3 * first + 8 * k, chunk[k], flat[k]);
-    }
-    Interleave(x, y, z, &flat[0], &flat[1], &flat[2]);
-    for (size_t k = 0; k < 3; ++k) {
-      _mm512_mask_storeu_pd(p.moved_x + 3 * first + 8 * k, chunk[k], flat[k]);
-    }
+    StoreFlat(vx, vy, vz, chunk, p.moved_v + 3 * first);
+    StoreFlat(x, y, z, chunk, p.moved_x + 3 * first);
   }
   return {non_finite != 0, maybe_too_fast != 0};
 }

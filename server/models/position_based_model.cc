@@ -138,17 +138,17 @@ double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __r
 }
 
 #ifdef SOMASIM_PBD_AVX512
-// 8 node records (x, y, z, w) at x + offset[0..7] (32-byte aligned) as the rows X, Y, Z, W of
-// 8 lanes: two 256-bit loads per 512-bit register, then an 8 × 4 transpose. Loading pairs the
+// 8 node records (x, y, z, w) at x + offset[0..7] (32-byte aligned) as the rows X, Y, Z of 8
+// lanes: two 256-bit loads per 512-bit register, then an 8 × 4 transpose of which the W row is
+// not formed (the sweep's factors w gain come from the state). Loading pairs the
 // records 0 2, 1 3, 4 6, 5 7, so that unpacks and 128-bit lane selections (vshuff64x2)
 // transpose them; storing pairs 0 4, 1 5, 2 6, 3 7 and uses two-source permutes. On Zen 4 a
 // two-source permute takes a whole multiply slot and a lane selection about 0.6 of one (3–4 %
-// of the sweep). The sweep reads no W (its factors w gain come from the state), so the compiler
-// drops W's lane selections.
+// of the sweep).
 // (The masked forms of unpack, shuffle and extract, all lanes set, are the plain instructions
 // without gcc-12's uninitialised-value warnings.)
 struct Lanes {
-  __m512d x, y, z, w;
+  __m512d x, y, z;
 };
 
 // Records offset[a] and offset[b] in one register.
@@ -172,8 +172,7 @@ __attribute__((target("avx512f,avx512vl"))) inline Lanes LoadRecords(const doubl
   // 128-bit lanes 0 2 of t0 then 0 2 of t2 (0x88), or 1 3 of each (0xDD).
   return {_mm512_maskz_shuffle_f64x2(0xFF, t0, t2, 0x88),
           _mm512_maskz_shuffle_f64x2(0xFF, t1, t3, 0x88),
-          _mm512_maskz_shuffle_f64x2(0xFF, t0, t2, 0xDD),
-          _mm512_maskz_shuffle_f64x2(0xFF, t1, t3, 0xDD)};
+          _mm512_maskz_shuffle_f64x2(0xFF, t0, t2, 0xDD)};
 }
 
 // The inverse of LoadPair for x, y, z: lane 3 (w) of the records is not written (masked stores:
@@ -188,8 +187,8 @@ __attribute__((target("avx512f,avx512vl"))) inline void StorePair(__m512d record
   _mm256_mask_store_pd(x + offset[a + 4], 0x7, _mm512_mask_extractf64x4_pd(unused, 0xF, record, 1));
 }
 
-// The inverse of LoadRecords for x, y, z (the w of a record never changes in a sweep, so lane 3
-// is left as it is and r.w is not read): the y row needs no permute for records 0 1 4 5, whose
+// The inverse of LoadRecords (the w of a record never changes in a sweep, so lane 3 is left as
+// it is): the y row needs no permute for records 0 1 4 5, whose
 // y sit in lanes 0 1 4 5 already, and one in-lane permute for 2 3 6 7.
 __attribute__((target("avx512f,avx512vl"))) inline void StoreRecords(const Lanes& r, double* x,
                                                                      const int32_t* offset,
