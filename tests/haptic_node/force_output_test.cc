@@ -260,6 +260,84 @@ TEST(ForceOutput, AStiffWallHitAtSpeedStaysPassiveWithUpTo50MillisecondsOfDelay)
   }
 }
 
+// A model that adds energy: it pushes a slowly moving hand the way the hand moves, harder than
+// the controller's largest damping (max_damping · 3 mm/s = 0.18 N) can take back, so the
+// observer goes into deficit by millijoules.
+void BuildEnergyDeficit(ForceOutput* out) {
+  for (int i = 0; i < 300; ++i) {
+    ForceInput in = Desired(Vector3d(4, 0, 0));
+    in.velocity = Vector3d(0.003, 0, 0);
+    out->Tick(in);
+  }
+  ASSERT_LT(out->observed_energy(), -0.001);
+}
+
+// SPEC §7: zero within 60 ms of the last good model and never rising while stale — the
+// passivity controller included. A deficit left by an active model must not keep rendering
+// damping once the model has gone stale.
+TEST(ForceOutput, AnEnergyDeficitRendersNothingOnceTheModelIsStale) {
+  const ForceOutputSettings s;
+  ForceOutput out(s);
+  Engage(&out, s);
+  BuildEnergyDeficit(&out);
+  double previous = out.Tick(Desired(Vector3d(4, 0, 0))).norm();
+  for (int ms = 1; ms <= 3500; ++ms) {
+    const double age = 1e-3 * ms;
+    ForceInput in = Desired(Vector3d(4, 0, 0), age);
+    // The hand drifts slowly, then moves at 0.1 m/s three seconds on.
+    in.velocity = Vector3d(ms < 3000 ? 0.003 : 0.1, 0, 0);
+    const double f = out.Tick(in).norm();
+    if (age > s.fresh) {
+      EXPECT_LE(f, previous + 1e-12) << ms << " ms: rising while stale";
+    }
+    if (age >= 0.060 - 1e-12) {
+      ASSERT_EQ(f, 0.0) << ms << " ms after the last model";
+    }
+    previous = f;
+  }
+  EXPECT_EQ(out.observed_energy(), 0.0);  // nothing rendered: the balance starts again
+  // Fresh models again: force comes back from a clean balance, without the old deficit's
+  // damping against the hand.
+  for (int i = 0; i < 600; ++i) {
+    ForceInput in = Desired(Vector3d::Zero());
+    in.velocity = Vector3d(0.1, 0, 0);
+    EXPECT_EQ(out.Tick(in), Vector3d::Zero()) << i;
+  }
+}
+
+// A fault latched while in deficit, cleared by the operator (the clutch pressed and released):
+// the re-engaged stage starts from a clean energy balance, and renders nothing while it is
+// disengaged.
+TEST(ForceOutput, AFaultClearedByTheClutchReengagesWithACleanEnergyBalance) {
+  const ForceOutputSettings s;
+  ForceOutput out(s);
+  Engage(&out, s);
+  BuildEnergyDeficit(&out);
+  ForceInput bad = Desired(Vector3d(4, 0, 0));
+  bad.device_ok = false;
+  EXPECT_EQ(out.Tick(bad), Vector3d::Zero());
+  EXPECT_TRUE(out.fault());
+  out.ClearFault();
+  EXPECT_EQ(out.observed_energy(), 0.0);
+  // Disengaged until the desired force has been small for engage_ticks: nothing rendered,
+  // however the hand moves.
+  for (int i = 0; i < 5; ++i) {
+    ForceInput in = Desired(Vector3d(4, 0, 0));
+    in.velocity = Vector3d(0.1, 0, 0);
+    EXPECT_EQ(out.Tick(in), Vector3d::Zero()) << i;
+    EXPECT_FALSE(out.engaged());
+  }
+  // Re-engaged with no force asked for and the hand moving: no damping from the old deficit.
+  for (int i = 0; i < 1000; ++i) {
+    ForceInput in = Desired(Vector3d::Zero());
+    in.velocity = Vector3d(0.1, 0, 0);
+    EXPECT_EQ(out.Tick(in), Vector3d::Zero()) << i;
+  }
+  EXPECT_TRUE(out.engaged());
+  EXPECT_EQ(out.observed_energy(), 0.0);
+  EXPECT_EQ(out.last_damping(), 0.0);
+}
+
 TEST(ForceOutput, TicksAllocateNothing) {
   const ForceOutputSettings s;
   ForceOutput out(s);
