@@ -49,6 +49,7 @@ void ForceOutput::Disengage() {
   engaged_ = false;
   quiet_ticks_ = 0;
   authority_ = 0.0;
+  energy_ = 0.0;
   last_ = Eigen::Vector3d::Zero();
 }
 
@@ -89,20 +90,30 @@ Eigen::Vector3d ForceOutput::Tick(const ForceInput& in) {
     if (quiet_ticks_ >= s_.engage_ticks) {
       engaged_ = true;
       authority_ = 0.0;
+      energy_ = 0.0;  // a new coupling: the observer's balance starts again
     }
   }
-  // Without a usable model (none yet, or stale to zero) the authority rests at zero, so force
-  // comes back gradually when models resume (a server paused and continued: no jump).
-  if (scale == 0.0) authority_ = 0.0;
-  if (engaged_ && scale > 0.0) authority_ = std::min(1.0, authority_ + s_.dt / s_.engage_ramp);
-  target *= engaged_ ? authority_ : 0.0;
+  // Nothing is rendered while disengaged or once the stale ramp has reached zero (none yet, or
+  // stale to zero): not the model's force and not the passivity controller's damping, whatever
+  // the energy balance (SPEC §7: zero 60 ms after the last good model). The authority rests at
+  // zero, so force comes back gradually when models resume (a server paused and continued: no
+  // jump), and the balance restarts with it.
+  if (!engaged_ || scale == 0.0) {
+    authority_ = 0.0;
+    energy_ = 0.0;
+    last_ = Eigen::Vector3d::Zero();
+    return last_;
+  }
+  authority_ = std::min(1.0, authority_ + s_.dt / s_.engage_ramp);
+  target *= authority_;
   // 5. The arm's limit (and, from a stale model, never more than last tick's: the hand may push
   // deeper into a model that no longer knows where the tissue is); 6. the change per tick.
+  const double limit = scale < 1.0 ? std::min(s_.max_force, last_.norm()) : s_.max_force;
   bool clamped = false;
   target = Clamp(target, s_.max_force, &clamped);
   if (scale < 1.0) {
     bool held = false;
-    target = Clamp(target, last_.norm(), &held);
+    target = Clamp(target, limit, &held);
   }
   const Eigen::Vector3d step = target - last_;
   bool limited = false;
@@ -114,9 +125,10 @@ Eigen::Vector3d ForceOutput::Tick(const ForceInput& in) {
     last_damping_ = std::min(s_.max_damping, (-s_.passivity_epsilon - w) / (v2 * s_.dt));
     out -= last_damping_ * in.velocity;
     ++counters_.damped_ticks;
+    // The damping too stays within the arm's limit and, while stale, within last tick's force.
     bool again = false;
-    out = Clamp(out, s_.max_force, &again);
-    clamped = clamped || again;
+    out = Clamp(out, limit, &again);
+    clamped = clamped || (again && limit == s_.max_force);
   }
   energy_ -= out.dot(in.velocity) * s_.dt;
   counters_.clamped_ticks += clamped ? 1 : 0;

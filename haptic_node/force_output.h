@@ -16,12 +16,16 @@
 //     `engage_ticks` ticks; the authority then rises linearly from 0 to 1 over `engage_ramp`.
 //     Without a usable model (none yet, or one stale to zero) the authority rests at 0 and rises
 //     again over `engage_ramp` when models resume: a paused server's return never jolts.
+//     Nothing at all is rendered while disengaged or once the stale ramp has reached zero, not
+//     even the passivity controller's damping (step 7).
 //  5. The magnitude is clamped to `max_force` (the arm's limit), keeping the direction.
 //  6. The change per tick is limited to `max_step` (a jump in the model never jolts the hand).
 //  7. Passivity observer (Hannaford & Ryu 2002): the energy the environment has absorbed,
 //     W = Σ -F·v dt (F on the hand, v the hand's velocity). When this tick would take W below
 //     -epsilon, damping b = (-epsilon - W) / (|v|² dt), at most `max_damping`, is added as -b v
-//     in the same tick, then the magnitude clamp is applied again.
+//     in the same tick, then the magnitude clamp (and, while stale, last tick's magnitude) is
+//     applied again. W starts again from 0 on every (re-)engagement and whenever nothing is
+//     rendered: a deficit left by one coupling never damps the hand in the next.
 #pragma once
 
 #include <Eigen/Core>
