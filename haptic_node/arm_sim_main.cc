@@ -19,6 +19,7 @@
 #include <thread>
 #include <vector>
 
+#include "common/app/exit_codes.h"
 #include "common/app/log.h"
 #include "common/app/realtime.h"
 #include "common/app/scheduling.h"
@@ -35,7 +36,11 @@ using app::Log;
 using app::LogLevel;
 using Clock = std::chrono::steady_clock;
 
-constexpr int kExitOk = 0, kExitUsage = 2, kExitBadScript = 3, kExitIo = 4, kExitBlock = 8;
+using app::kExitArmBlock;  // exit codes: common/app/exit_codes.h
+using app::kExitBadInput;
+using app::kExitIo;
+using app::kExitOk;
+using app::kExitUsage;
 
 int64_t Ns(Clock::time_point t) {
   return std::chrono::duration_cast<std::chrono::nanoseconds>(t.time_since_epoch()).count();
@@ -92,14 +97,14 @@ int Main(int argc, char** argv) {
     script = std::make_unique<MockScript>(MockScript::Load(script_path));
   } catch (const ScriptError& e) {
     std::fprintf(stderr, "somasim-arm-sim: --script %s\n", e.what());
-    return kExitBadScript;
+    return kExitBadInput;
   }
   std::unique_ptr<arm::ArmBlock> block;
   try {
     block = arm::ArmBlock::Create(arm_name, static_cast<uint32_t>(kinematics->num_joints()));
   } catch (const arm::ArmShmError& e) {
     std::fprintf(stderr, "somasim-arm-sim: %s\n", e.what());
-    return kExitBlock;
+    return kExitArmBlock;
   }
   std::ofstream torques;
   if (!torques_path.empty()) {
@@ -157,7 +162,7 @@ int Main(int argc, char** argv) {
       if (block->HeaderProblem() != nullptr) {
         const std::string bad = block->HeaderError();
         Log(LogLevel::kError, "block_unusable", {{"reason", bad}, {"monotonic_ns", Ns(now)}});
-        exit_code = kExitBlock;
+        exit_code = kExitArmBlock;
         break;
       }
     }

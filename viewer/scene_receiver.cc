@@ -10,14 +10,13 @@
 
 #include "common/wire/mesh_frame_view.h"
 #include "idl/scene.pb.h"
-#include "server/contact/force_model_wire.h"
+#include "common/force_model/force_model_wire.h"
 
 namespace somasim::viewer {
 
 namespace {
 
 constexpr size_t kMaxMessages = 8;    // scenario messages kept for the heads-up display
-constexpr size_t kMaxHeldNodes = 64;  // server/contact/grasp.h GraspSettings::max_nodes
 
 // Silences protobuf's parse errors: a scene text the viewer cannot read only costs it the
 // grasp radii (their defaults stay).
@@ -30,7 +29,7 @@ class QuietErrors : public google::protobuf::io::ErrorCollector {
 
 Eigen::Vector3d ToolScene::Force() const {
   if (!has_model || !has_pose) return Eigen::Vector3d::Zero();
-  return contact::EvaluateLocalForceModel(
+  return force_model::EvaluateLocalForceModel(
              model, Eigen::Vector3d(position[0], position[1], position[2]), Eigen::Vector3d::Zero())
       .force;
 }
@@ -264,16 +263,26 @@ void SceneReceiver::OnForceModel(const somasim_wire_ForceModel& m) {
   }
   const auto it = tools_.find(m.tool);
   if (it == tools_.end() || m.server_id != server_id_) return;
-  contact::LocalForceModel model;
-  if (!contact::FromWire(m, dds::kWireFormatVersion, &model).empty()) {
+  force_model::LocalForceModel model;
+  if (!force_model::FromWire(m, dds::kWireFormatVersion, &model).empty()) {
     ++counters_.bad_tool_samples;  // non-finite, asymmetric, negative stiffness, ...
     return;
   }
+  // The grasped nodes the server publishes, checked against the organ they name.
+  const std::string organ = m.organ != nullptr ? m.organ : "";
+  std::vector<uint32_t> held;
+  if (model.grasping) {
+    const auto o = organs_.find(organ);
+    const uint32_t num_nodes = o != organs_.end() ? o->second.num_nodes : 0;
+    if (!force_model::HeldNodesFromWire(m, num_nodes, &held).empty()) {
+      ++counters_.bad_tool_samples;  // too many, or not the organ's
+      return;
+    }
+  }
   ToolScene& t = it->second;
-  const bool grasp_begins = model.grasping && !t.grasping;
   t.has_model = true;
   t.model = model;
-  t.organ = m.organ != nullptr ? m.organ : "";
+  t.organ = organ;
   t.in_contact = model.in_contact;
   t.grasping = model.grasping;
   for (int k = 0; k < 3; ++k) {
@@ -281,12 +290,8 @@ void SceneReceiver::OnForceModel(const somasim_wire_ForceModel& m) {
     t.normal[k] = model.normal[k];
     t.grasp_anchor[k] = model.grasp_anchor[k];
   }
-  if (grasp_begins) {
-    FindHeldNodes(&t);
-  } else if (!model.grasping) {
-    t.held_nodes.clear();
-    t.held_organ.clear();
-  }
+  t.held_nodes = std::move(held);
+  t.held_organ = model.grasping ? organ : std::string();
 }
 
 void SceneReceiver::OnRigidBody(const somasim_wire_RigidBodyState& b) {
@@ -314,40 +319,6 @@ void SceneReceiver::OnRigidBody(const somasim_wire_RigidBodyState& b) {
   std::copy(std::begin(b.orientation), std::end(b.orientation), r.orientation);
   r.grasped = b.grasped;
   r.sim_time = b.sim_time;
-}
-
-void SceneReceiver::FindHeldNodes(ToolScene* tool) const {
-  tool->held_nodes.clear();
-  tool->held_organ.clear();
-  const auto organ = organs_.find(tool->organ);
-  if (organ == organs_.end() || !tool->has_pose) return;
-  const OrganScene& o = organ->second;
-  // The jaw segment p..q: from the tip up the shaft (the tool frame's +z).
-  const Eigen::Quaterniond rotation(tool->orientation[0], tool->orientation[1],
-                                    tool->orientation[2], tool->orientation[3]);
-  const Eigen::Vector3d p(tool->position[0], tool->position[1], tool->position[2]);
-  const Eigen::Vector3d axis = rotation.norm() > 1e-9
-                                   ? (rotation.normalized() * Eigen::Vector3d::UnitZ()).eval()
-                                   : Eigen::Vector3d::UnitZ().eval();
-  const Eigen::Vector3d q = p + tool->jaw_length * axis;
-  const float* x = o.positions();
-  std::vector<std::pair<double, uint32_t>> near;
-  std::vector<uint8_t> seen(o.num_nodes, 0);
-  for (const uint32_t node : o.triangles) {
-    if (seen[node] != 0) continue;
-    seen[node] = 1;
-    const Eigen::Vector3d v =
-        Eigen::Vector3f(x[3 * node], x[3 * node + 1], x[3 * node + 2]).cast<double>();
-    const Eigen::Vector3d d = q - p;
-    const double s =
-        d.squaredNorm() > 0.0 ? std::clamp((v - p).dot(d) / d.squaredNorm(), 0.0, 1.0) : 0.0;
-    const double distance = (v - (p + s * d)).norm();
-    if (distance <= tool->grasp_radius) near.emplace_back(distance, node);
-  }
-  std::sort(near.begin(), near.end());
-  if (near.size() > kMaxHeldNodes) near.resize(kMaxHeldNodes);
-  for (const auto& [distance, node] : near) tool->held_nodes.push_back(node);
-  tool->held_organ = tool->organ;
 }
 
 bool SceneReceiver::complete() const {

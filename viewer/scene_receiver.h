@@ -20,7 +20,7 @@
 
 #include "common/dds/topics.h"
 #include "common/wire/frame_codec.h"
-#include "server/contact/local_force_model.h"
+#include "common/force_model/local_force_model.h"
 
 namespace somasim::viewer {
 
@@ -66,14 +66,13 @@ struct ToolScene {
   double normal[3] = {};         // outward, unit
   bool grasping = false;
   double grasp_anchor[3] = {};  // [m]
-  // The server's last local force model (validated: contact::FromWire) and the organ it
+  // The server's last local force model (validated: force_model::FromWire) and the organ it
   // touches or holds ("" for none).
   bool has_model = false;
-  contact::LocalForceModel model;
+  force_model::LocalForceModel model;
   std::string organ;
-  // The grasped points: when a grasp begins, the surface nodes of the held organ within
-  // grasp_radius of the jaw segment (tip to jaw_length up the shaft) as shown then, the 64
-  // nearest at most: the server's rule (server/contact/grasp.cc), which does not publish them.
+  // The grasped points the server publishes with the model: nodes of held_organ, the nearest
+  // to the jaws first (validated: force_model::HeldNodesFromWire).
   std::string held_organ;
   std::vector<uint32_t> held_nodes;
 
@@ -100,6 +99,7 @@ struct ReceiverCounters {
   uint64_t server_restarts = 0;
   uint64_t bad_rigid_bodies = 0;  // non-finite poses, radii outside (0, 0.2] m
   uint64_t bad_tool_samples = 0;  // tool commands with non-finite values; unusable force models
+                                  // or held nodes
 };
 
 class SceneReceiver {
@@ -139,8 +139,6 @@ class SceneReceiver {
   void SeeServer(uint64_t id);
   void OnForceModel(const somasim_wire_ForceModel& m);
   void OnRigidBody(const somasim_wire_RigidBodyState& b);
-  // The grasped points of `tool` as a grasp begins (ToolScene::held_nodes).
-  void FindHeldNodes(ToolScene* tool) const;
 
   std::unique_ptr<dds::Reader<somasim_wire_SessionInfo>> session_;
   std::unique_ptr<dds::Reader<somasim_wire_OrganTopology>> topology_;

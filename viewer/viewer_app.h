@@ -8,16 +8,18 @@
 // keys: f fits the view, q or Esc quits.
 #pragma once
 
+#include "common/app/exit_codes.h"
+
 namespace somasim::viewer {
 
-// Exit codes (also in --help).
-inline constexpr int kExitOk = 0;
-inline constexpr int kExitUsage = 2;
-inline constexpr int kExitIo = 4;
-inline constexpr int kExitDds = 5;
-inline constexpr int kExitNoDisplay = 6;
-inline constexpr int kExitTimeout = 7;
-inline constexpr int kExitBug = 70;
+// Exit codes (common/app/exit_codes.h; also in --help).
+using app::kExitBug;
+using app::kExitDds;
+using app::kExitIo;
+using app::kExitNoDisplay;
+using app::kExitOk;
+using app::kExitTimeout;
+using app::kExitUsage;
 
 int ViewerMain(int argc, char** argv);
 

@@ -5,6 +5,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "common/app/exit_codes.h"
+
 namespace somasim::mesh_io {
 
 // Where in a file a fault is. Text formats give a 1-based line; binary ones a byte offset.
@@ -43,5 +45,11 @@ class MeshError : public std::runtime_error {
   SourceLocation where_;
   std::string fault_;
 };
+
+// The exit code a program ends with on this error (common/app/exit_codes.h): kExitIo when the
+// file could not be read or written, kExitBadInput when it was refused.
+inline int ExitCodeOf(const MeshError& e) {
+  return e.kind() == MeshErrorKind::kIo ? app::kExitIo : app::kExitBadInput;
+}
 
 }  // namespace somasim::mesh_io

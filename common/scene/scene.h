@@ -10,6 +10,7 @@
 #include <string>
 #include <string_view>
 
+#include "common/app/exit_codes.h"
 #include "idl/scene.pb.h"
 
 namespace somasim::scene {
@@ -30,6 +31,12 @@ class SceneError : public std::runtime_error {
   int line_;
   std::string field_;
 };
+
+// The exit code a program ends with on this error (common/app/exit_codes.h): kExitIo when the
+// file could not be read (no line and no field), kExitBadInput when it was refused.
+inline int ExitCodeOf(const SceneError& e) {
+  return e.line() == 0 && e.field().empty() ? app::kExitIo : app::kExitBadInput;
+}
 
 // True for the finite-element kinds (fem_linear, fem_corotational, fem_hyperelastic).
 bool IsFemModel(const Model& model);

@@ -32,10 +32,6 @@ using mesh_io::MeshData;
 using mesh_io::MeshError;
 using mesh_io::MeshErrorKind;
 
-int ExitCodeFor(const MeshError& e) {
-  return e.kind() == MeshErrorKind::kIo ? kExitIo : kExitBadInput;
-}
-
 // Everything `info` reports, computed once for text and JSON output.
 struct MeshSummary {
   int64_t nodes = 0, tetrahedra = 0, triangles = 0;
@@ -323,7 +319,7 @@ int RunGenerate(const GenerateOptions& options, std::ostream& out, std::ostream&
     return kExitOk;
   } catch (const MeshError& e) {
     err << "somasim-mesh: " << e.what() << "\n";
-    return ExitCodeFor(e);
+    return mesh_io::ExitCodeOf(e);
   }
 }
 
@@ -339,7 +335,7 @@ int RunInfo(const InfoOptions& options, std::ostream& out, std::ostream& err) {
     return kExitOk;
   } catch (const MeshError& e) {
     err << "somasim-mesh: " << e.what() << "\n";
-    return ExitCodeFor(e);
+    return mesh_io::ExitCodeOf(e);
   }
 }
 
@@ -361,7 +357,7 @@ int RunConvert(const ConvertOptions& options, std::ostream& out, std::ostream& e
     return kExitOk;
   } catch (const MeshError& e) {
     err << "somasim-mesh: " << e.what() << "\n";
-    return ExitCodeFor(e);
+    return mesh_io::ExitCodeOf(e);
   }
 }
 
@@ -445,7 +441,7 @@ int RunTetrahedralize(const TetrahedralizeOptions& options, std::ostream& out, s
     return kExitOk;
   } catch (const MeshError& e) {
     err << "somasim-mesh: " << e.what() << "\n";
-    return ExitCodeFor(e);
+    return mesh_io::ExitCodeOf(e);
   } catch (const std::filesystem::filesystem_error& e) {
     err << "somasim-mesh: " << e.what() << "\n";
     return kExitIo;

@@ -7,17 +7,18 @@
 #include <string>
 #include <string_view>
 
+#include "common/app/exit_codes.h"
 #include "common/mesh_io/mesh_io.h"
 
 namespace somasim::tools {
 
 // Exit codes (all in 1..125, as shells and CTest expect).
-inline constexpr int kExitOk = 0;
-inline constexpr int kExitUsage = 2;           // bad command line
-inline constexpr int kExitBadInput = 3;        // a mesh file was refused (malformed, invalid)
-inline constexpr int kExitIo = 4;              // a file could not be read or written
-inline constexpr int kExitTetrahedralize = 5;  // the surface cannot be, or was not, meshed
-inline constexpr int kExitInternal = 70;       // a bug: an unexpected exception
+using app::kExitBadInput;  // exit codes: common/app/exit_codes.h
+using app::kExitBug;
+using app::kExitIo;
+using app::kExitOk;
+using app::kExitTetrahedralize;
+using app::kExitUsage;
 
 struct InfoOptions {
   std::string file;

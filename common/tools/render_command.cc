@@ -23,11 +23,6 @@ namespace {
 
 using mesh_io::MeshData;
 using mesh_io::MeshError;
-using mesh_io::MeshErrorKind;
-
-int ExitCodeFor(const MeshError& e) {
-  return e.kind() == MeshErrorKind::kIo ? kExitIo : kExitBadInput;
-}
 
 bool EndsWithPng(const std::string& path) {
   std::string ext = std::filesystem::path(path).extension().string();
@@ -152,11 +147,11 @@ int RunRender(const RenderCommandOptions& options, std::ostream& out, std::ostre
     return kExitOk;
   } catch (const MeshError& e) {
     err << "somasim-mesh: " << e.what() << "\n";
-    return ExitCodeFor(e);
+    return mesh_io::ExitCodeOf(e);
   } catch (const std::exception& e) {
     err << "somasim-mesh: internal error while rendering " << options.input << ": " << e.what()
         << "\n";
-    return kExitInternal;
+    return kExitBug;
   }
 }
 

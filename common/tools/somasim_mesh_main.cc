@@ -156,7 +156,7 @@ int RunMain(int argc, char** argv) {
     if (*generate_cmd) return somasim::tools::RunGenerate(generate, std::cout, std::cerr);
   } catch (const std::exception& e) {
     std::cerr << "somasim-mesh: internal error: " << e.what() << "\n";
-    return somasim::tools::kExitInternal;
+    return somasim::tools::kExitBug;
   }
   return somasim::tools::kExitUsage;
 }
@@ -169,6 +169,6 @@ int main(int argc, char** argv) {
   } catch (...) {
     // Nothing may escape main (CLI11's own set-up can throw); say so and fail.
     std::cerr << "somasim-mesh: internal error\n";
-    return somasim::tools::kExitInternal;
+    return somasim::tools::kExitBug;
   }
 }

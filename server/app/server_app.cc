@@ -29,7 +29,7 @@
 #include "common/wire/frame_codec.h"
 #include "common/wire/frame_dump.h"
 #include "server/app/snapshot_buffer.h"
-#include "server/contact/force_model_wire.h"
+#include "common/force_model/force_model_wire.h"
 #include "server/recording/recorder.h"
 #include "server/recording/replay.h"
 #include "server/session/session.h"
@@ -326,7 +326,7 @@ class Server {
     google::protobuf::TextFormat::PrintToString(session_.scene(), &text);
     std::vector<somasim_wire_OrganInfo> organs(static_cast<size_t>(session_.num_organs()));
     for (int32_t k = 0; k < session_.num_organs(); ++k) {
-      const solve::BuiltOrgan& b = session_.organ(k).built;
+      const organs::BuiltOrgan& b = session_.organ(k).built;
       somasim_wire_OrganInfo& o = organs[static_cast<size_t>(k)];
       o.id = dds::CString(b.id);
       o.model = dds::CString(b.model_name);
@@ -363,7 +363,7 @@ class Server {
     info.tools._length = info.tools._maximum = static_cast<uint32_t>(tools.size());
     session_writer_->Write(info);
     for (int32_t k = 0; k < session_.num_organs(); ++k) {
-      const solve::BuiltOrgan& b = session_.organ(k).built;
+      const organs::BuiltOrgan& b = session_.organ(k).built;
       const std::vector<uint8_t> inner(static_cast<size_t>(b.triangles.cols()), 0);
       PublishTopology(k, published_version_[static_cast<size_t>(k)],
                       {b.rest().data(), static_cast<size_t>(b.rest().size())}, b.triangles, inner);
@@ -374,7 +374,7 @@ class Server {
   // inner-face marks, under `version`.
   void PublishTopology(int32_t k, uint32_t version, std::span<const double> rest_positions,
                        const mesh::Triangles& surface, const std::vector<uint8_t>& inner_faces) {
-    const solve::BuiltOrgan& b = session_.organ(k).built;
+    const organs::BuiltOrgan& b = session_.organ(k).built;
     std::vector<float> rest(rest_positions.size());
     for (size_t i = 0; i < rest.size(); ++i) rest[i] = static_cast<float>(rest_positions[i]);
     std::vector<uint32_t> triangles(static_cast<size_t>(surface.size()));
@@ -427,7 +427,7 @@ class Server {
       if (!snapshot.Take()) continue;
       const auto version = static_cast<uint32_t>(snapshot.time());
       const std::span<const double> values = snapshot.values();
-      const solve::BuiltOrgan& b = session_.organ(k).built;
+      const organs::BuiltOrgan& b = session_.organ(k).built;
       size_t tets = 0;
       mesh::Triangles triangles = b.triangles;
       std::vector<uint8_t> inner(static_cast<size_t>(b.triangles.cols()), 0);
@@ -641,18 +641,21 @@ class Server {
     for (int32_t t = 0; t < session_.num_tools(); ++t) {
       const SessionTool& tool = session_.tool(t);
       if (tool.contacts.empty() || !tool.commanded) continue;
-      const contact::LocalForceModel& m = tool.force_model;
+      const force_model::LocalForceModel& m = tool.force_model;
       ToolStats& stats = tool_stats_[static_cast<size_t>(t)];
       if (m.in_contact || m.grasping) {
         const double f =
-            contact::EvaluateLocalForceModel(m, tool.command.pose.tip, Eigen::Vector3d::Zero())
+            force_model::EvaluateLocalForceModel(m, tool.command.pose.tip, Eigen::Vector3d::Zero())
                 .force.norm();
         stats.contact_time += dt;
         stats.force_sum += f * dt;
         stats.max_force = std::max(stats.max_force, f);
       }
       somasim_wire_ForceModel& w = force_samples_[static_cast<size_t>(t)];
-      contact::ToWire(m, &w);
+      force_model::ToWire(m, &w);
+      std::array<int32_t, force_model::kMaxHeldNodes> held{};
+      const int32_t num_held = session_.HeldNodes(t, held);
+      force_model::HeldNodesToWire({held.data(), static_cast<size_t>(num_held)}, &w);
       w.tool = dds::CString(tool.id);
       w.format_version = dds::kWireFormatVersion;
       w.server_id = server_id_;
@@ -1058,15 +1061,15 @@ int ServerMain(int argc, char** argv) {
   } catch (const scene::SceneError& e) {
     Log(LogLevel::kError, "bad_scene", {{"error", e.what()}});
     std::fprintf(stderr, "somasim-server: %s\n", e.what());
-    return kExitBadScene;
+    return kExitBadInput;
   } catch (const mesh_io::MeshError& e) {
     Log(LogLevel::kError, "bad_mesh", {{"error", e.what()}});
     std::fprintf(stderr, "somasim-server: %s\n", e.what());
-    return kExitBadScene;
+    return kExitBadInput;
   } catch (const std::invalid_argument& e) {
     Log(LogLevel::kError, "bad_scene", {{"error", e.what()}});
     std::fprintf(stderr, "somasim-server: %s: %s\n", options.scene.c_str(), e.what());
-    return kExitBadScene;
+    return kExitBadInput;
   }
   std::string dds_config;
   try {
@@ -1145,7 +1148,7 @@ int ReplayServerMain(const ServerOptions& given, const std::string& file) {
     session = inputs->MakeSession();
   } catch (const std::exception& e) {
     std::fprintf(stderr, "somasim-replay: %s\n", e.what());
-    return kExitBadScene;
+    return kExitBadInput;
   }
   // The checkpoint nearest to --from.
   const double every = static_cast<double>(inputs->header().checkpoint_interval()) * session->dt();
@@ -1175,7 +1178,7 @@ int ReplayServerMain(const ServerOptions& given, const std::string& file) {
     return kExitDds;
   } catch (const std::exception& e) {  // a corrupt record met while publishing
     std::fprintf(stderr, "somasim-replay: %s\n", e.what());
-    return kExitBadScene;
+    return kExitBadInput;
   }
   const ReplayResult& r = inputs->result();
   report["replay"] = {{"file", file},

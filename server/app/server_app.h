@@ -11,15 +11,17 @@
 #include <string>
 #include <vector>
 
+#include "common/app/exit_codes.h"
+
 namespace somasim::server {
 
-// Exit codes (also in --help).
-inline constexpr int kExitOk = 0;
-inline constexpr int kExitUsage = 2;
-inline constexpr int kExitBadScene = 3;
-inline constexpr int kExitIo = 4;
-inline constexpr int kExitDds = 5;
-inline constexpr int kExitBug = 70;
+// Exit codes (common/app/exit_codes.h; also in --help).
+using app::kExitBadInput;
+using app::kExitBug;
+using app::kExitDds;
+using app::kExitIo;
+using app::kExitOk;
+using app::kExitUsage;
 
 struct ServerOptions {
   std::string scene = "builtin:liver";  // a .scene.txtpb file or builtin:NAME

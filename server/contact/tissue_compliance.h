@@ -1,6 +1,7 @@
 // The tissue's local compliance at a surface node, for the local force model
-// (local_force_model.h): C = (∂x_node/∂f_node) [m/N], 3 × 3 symmetric positive definite — how far
-// the node moves per newton pushed on it, the rest of the organ free to follow.
+// (common/force_model/local_force_model.h): C = (∂x_node/∂f_node) [m/N], 3 × 3 symmetric
+// positive definite — how far the node moves per newton pushed on it, the rest of the organ free
+// to follow.
 //
 // FEM (condensed compliance): C_i = [K⁻¹]_ii, the 3 × 3 diagonal block of the inverse of the
 // stiffness with the organ's held nodes removed — exactly the static response of a linear organ

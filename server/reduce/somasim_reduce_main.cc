@@ -23,14 +23,15 @@
 #include <set>
 #include <sstream>
 
+#include "common/app/exit_codes.h"
 #include "common/app/blas_kernels.h"
 #include "common/mesh/topology.h"
 #include "common/mesh_io/mesh_error.h"
 #include "common/scene/scene.h"
 #include "server/reduce/builder.h"
 #include "server/reduce/evaluate.h"
-#include "server/reduce/reduced_file.h"
-#include "server/solve/organ_builder.h"
+#include "server/organs/reduced_file.h"
+#include "server/organs/organ_builder.h"
 
 #ifndef SOMASIM_VERSION
 #define SOMASIM_VERSION "unknown"
@@ -38,15 +39,16 @@
 
 namespace {
 
-constexpr int kExitOk = 0;
-constexpr int kExitFailed = 1;
-constexpr int kExitUsage = 2;
-constexpr int kExitBadInput = 3;
-constexpr int kExitIo = 4;
-constexpr int kExitInternal = 70;
+using somasim::app::kExitBadInput;
+using somasim::app::kExitBug;
+using somasim::app::kExitFailed;
+using somasim::app::kExitIo;
+using somasim::app::kExitOk;
+using somasim::app::kExitUsage;
 
 namespace scene = somasim::scene;
 namespace reduce = somasim::reduce;
+namespace organs = somasim::organs;
 namespace models = somasim::models;
 
 // Up to `count` nodes of `candidates` spread out: the one nearest their centroid first, then
@@ -89,8 +91,8 @@ int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
     std::cerr << "somasim-reduce: no organ \"" << organ_id << "\" in the scene\n";
     return kExitBadInput;
   }
-  const somasim::solve::BuiltOrgan organ =
-      somasim::solve::BuildOrgan(s, organ_index, lines, scene_dir);
+  const somasim::organs::BuiltOrgan organ =
+      somasim::organs::BuildOrgan(s, organ_index, lines, scene_dir);
   if (organ.fem == nullptr) {
     std::cerr << "somasim-reduce: " << organ.field << " (" << organ.id
               << ") is not a FEM model: nothing to compare with\n";
@@ -100,7 +102,7 @@ int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
     std::cerr << "somasim-reduce: " << per_step_file << " exists (never overwritten)\n";
     return kExitIo;
   }
-  const reduce::LoadedReducedModel loaded = reduce::LoadReducedModel(model_file, &organ.volume);
+  const organs::LoadedReducedModel loaded = organs::LoadReducedModel(model_file, &organ.volume);
   std::ifstream in(plan_file);
   if (!in) {
     std::cerr << "somasim-reduce: cannot read " << plan_file << "\n";
@@ -261,9 +263,9 @@ int RunMain(int argc, char** argv) {
     const scene::Reduction& r = s.reduction(plan_index);
     int organ_index = 0;
     while (s.organ(organ_index).id() != r.organ()) ++organ_index;
-    const somasim::solve::BuiltOrgan organ =
-        somasim::solve::BuildOrgan(s, organ_index, lines, scene_dir);
-    const std::string why = somasim::solve::UnheldParts(organ, organ.fixed_nodes);
+    const somasim::organs::BuiltOrgan organ =
+        somasim::organs::BuildOrgan(s, organ_index, lines, scene_dir);
+    const std::string why = somasim::organs::UnheldParts(organ, organ.fixed_nodes);
     if (!why.empty()) {
       std::cerr << "somasim-reduce: " << organ.field << ": " << why << "\n";
       return kExitBadInput;
@@ -278,7 +280,7 @@ int RunMain(int argc, char** argv) {
       const std::string where = field + ".interaction[" + std::to_string(i) + "]";
       std::vector<int32_t> candidates;
       for (const int32_t n :
-           somasim::solve::SelectRegion(r.interaction(i), organ.rest(), where, lines)) {
+           somasim::organs::SelectRegion(r.interaction(i), organ.rest(), where, lines)) {
         if (held.count(n) == 0 && normals.col(n).squaredNorm() > 0.5) candidates.push_back(n);
       }
       if (candidates.empty()) {
@@ -334,7 +336,7 @@ int RunMain(int argc, char** argv) {
     m.set_command(command);
     m.set_organ(organ.id);
     m.set_mesh(organ.mesh_name);
-    m.set_mesh_hash(reduce::MeshHash(organ.volume));
+    m.set_mesh_hash(organs::MeshHash(organ.volume));
     m.set_num_nodes(static_cast<uint64_t>(organ.volume.vertices.cols()));
     m.set_num_tets(static_cast<uint64_t>(organ.volume.tetrahedra.cols()));
     m.set_material(s.organ(organ_index).model().ShortDebugString() + " " +
@@ -353,7 +355,7 @@ int RunMain(int argc, char** argv) {
                               std::chrono::system_clock::now().time_since_epoch())
                               .count());
     m.set_build_seconds(report.seconds);
-    reduce::WriteReducedModel(out_file, m, report.data);
+    organs::WriteReducedModel(out_file, m, report.data);
     nlohmann::json nonlinear_summary;
     if (!nonlinear_file.empty()) {
       const reduce::NonlinearBuildReport nl =
@@ -368,7 +370,7 @@ int RunMain(int argc, char** argv) {
                        " elements");
       nm.set_cubature_residual(nl.cubature.relative_residual);
       nm.set_build_seconds(report.seconds + nl.seconds);
-      reduce::WriteReducedModel(nonlinear_file, nm, nl.data);
+      organs::WriteReducedModel(nonlinear_file, nm, nl.data);
       nonlinear_summary["file"] = nonlinear_file;
       nonlinear_summary["modes"] = nl.data.modes.cols();
       nonlinear_summary["snapshots"] = nl.snapshots;
@@ -420,11 +422,11 @@ int RunMain(int argc, char** argv) {
     return kExitOk;
   } catch (const scene::SceneError& e) {
     std::cerr << "somasim-reduce: " << e.what() << "\n";
-    return e.line() == 0 && e.field().empty() ? kExitIo : kExitBadInput;
+    return scene::ExitCodeOf(e);
   } catch (const somasim::mesh_io::MeshError& e) {
     std::cerr << "somasim-reduce: " << e.what() << "\n";
-    return e.kind() == somasim::mesh_io::MeshErrorKind::kIo ? kExitIo : kExitBadInput;
-  } catch (const reduce::ReducedFileError& e) {
+    return somasim::mesh_io::ExitCodeOf(e);
+  } catch (const organs::ReducedFileError& e) {
     std::cerr << "somasim-reduce: " << e.what() << "\n";
     return kExitIo;
   } catch (const std::invalid_argument& e) {
@@ -440,6 +442,6 @@ int main(int argc, char** argv) {
     return RunMain(argc, argv);
   } catch (const std::exception& e) {
     std::cerr << "somasim-reduce: internal error: " << e.what() << "\n";
-    return kExitInternal;
+    return kExitBug;
   }
 }

@@ -120,7 +120,7 @@ Session::Session(const scene::Scene& scene, const scene::SceneLines& lines,
   dt_ = std::numeric_limits<double>::infinity();
   for (int k = 0; k < scene.organ_size(); ++k) {
     auto o = std::make_unique<SessionOrgan>();
-    o->built = solve::BuildOrgan(scene, k, lines, scene_dir);
+    o->built = organs::BuildOrgan(scene, k, lines, scene_dir);
     o->state = o->built.model->MakeState();
     o->surface = std::make_unique<contact::OrganSurface>(o->state->positions, o->built.triangles);
     if (o->built.fem != nullptr && !o->built.fixed_nodes.empty()) {
@@ -370,7 +370,7 @@ void Session::UpdateForceModel(int32_t t) {
       chosen >= 0 && tool.contacts[static_cast<size_t>(chosen)]->proxy().in_contact();
   const bool grasping =
       chosen >= 0 && tool.contacts[static_cast<size_t>(chosen)]->grasp().holding();
-  contact::LocalForceModel model;
+  force_model::LocalForceModel model;
   model.damping = tool.force_model.damping;
   model.force_limit = tool.force_model.force_limit;
   if (chosen >= 0) {
@@ -387,7 +387,7 @@ void Session::UpdateForceModel(int32_t t) {
   for (const auto& r : rigid_) {
     if (r->sphere->grasped() || r->sphere->tool_force().squaredNorm() > 0.0) {
       // A held or pushed stone: its force on the tool, the same at every device position.
-      model.bias_force += r->sphere->tool_force();
+      force_model::Vec(model.bias_force) += r->sphere->tool_force();
     }
   }
   model.sequence = sequence;
@@ -407,6 +407,16 @@ void Session::UpdateForceModel(int32_t t) {
          t, held);
     tool.was_grasping = grasping;
   }
+}
+
+int32_t Session::HeldNodes(int32_t t, std::span<int32_t> out) const {
+  const SessionTool& tool = *tools_[static_cast<size_t>(t)];
+  if (tool.force_organ < 0 || !tool.force_model.grasping) return 0;
+  const contact::Grasp& grasp = tool.contacts[static_cast<size_t>(tool.force_organ)]->grasp();
+  const std::span<const models::Attachment> held = grasp.attachments();
+  const size_t n = std::min(held.size(), out.size());
+  for (size_t i = 0; i < n; ++i) out[i] = held[i].node;
+  return static_cast<int32_t>(n);
 }
 
 void Session::Reset() {

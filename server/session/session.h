@@ -33,10 +33,10 @@
 
 #include "common/scene/scene.h"
 #include "server/contact/contact_pipeline.h"
-#include "server/contact/local_force_model.h"
+#include "common/force_model/local_force_model.h"
 #include "server/contact/rigid_body.h"
 #include "server/cutting/tet_cutter.h"
-#include "server/solve/organ_builder.h"
+#include "server/organs/organ_builder.h"
 
 namespace somasim::server {
 
@@ -68,7 +68,7 @@ struct ToolCommandInput {
 };
 
 struct SessionOrgan {
-  solve::BuiltOrgan built;
+  organs::BuiltOrgan built;
   std::unique_ptr<models::TissueState> state;
   std::unique_ptr<contact::OrganSurface> surface;
   std::unique_ptr<contact::FemCompliance> compliance;  // FEM organs that are held; else null
@@ -93,7 +93,7 @@ struct SessionTool {
   ToolCommandInput command;
   bool commanded = false;                                       // a command has arrived
   std::vector<std::unique_ptr<contact::ToolContact>> contacts;  // one per organ (none: camera)
-  contact::LocalForceModel force_model;
+  force_model::LocalForceModel force_model;
   int32_t force_organ = -1;  // the organ the force model comes from, or -1
   bool was_touching = false;
   bool was_grasping = false;
@@ -150,6 +150,9 @@ class Session {
   int32_t num_tools() const { return static_cast<int32_t>(tools_.size()); }
   const SessionTool& tool(int32_t i) const { return *tools_[static_cast<size_t>(i)]; }
   int32_t ToolIndex(std::string_view id) const;  // -1 when unknown
+  // The nodes of tool i's force organ its grasp holds (none when it holds nothing), into `out`
+  // (at most out.size(), the nearest to the jaws first); how many. Allocation-free.
+  int32_t HeldNodes(int32_t i, std::span<int32_t> out) const;
 
   int32_t num_rigid() const { return static_cast<int32_t>(rigid_.size()); }
   const SessionRigid& rigid(int32_t i) const { return *rigid_[static_cast<size_t>(i)]; }

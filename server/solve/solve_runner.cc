@@ -8,13 +8,19 @@
 #include <stdexcept>
 
 #include "common/mesh_io/mesh_io.h"
-#include "server/solve/organ_builder.h"
+#include "server/organs/organ_builder.h"
 
 namespace somasim::solve {
 namespace {
 
 namespace fem = models::fem;
 namespace meshless = models::meshless;
+using organs::BuildOrgan;
+using organs::BuiltOrgan;
+using organs::HistoryScale;
+using organs::PressureForces;
+using organs::SelectRegion;
+using organs::UnheldParts;
 
 // One of the scene's loads on this organ, with its nodes.
 struct AppliedLoad {

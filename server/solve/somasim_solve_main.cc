@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <iostream>
 
+#include "common/app/exit_codes.h"
 #include "common/app/blas_kernels.h"
 #include "common/mesh_io/mesh_error.h"
 #include "common/scene/scene.h"
@@ -21,12 +22,12 @@
 
 namespace {
 
-constexpr int kExitOk = 0;
-constexpr int kExitUnconverged = 1;
-constexpr int kExitUsage = 2;
-constexpr int kExitBadInput = 3;
-constexpr int kExitIo = 4;
-constexpr int kExitInternal = 70;
+using somasim::app::kExitBadInput;
+using somasim::app::kExitBug;
+using somasim::app::kExitFailed;
+using somasim::app::kExitIo;
+using somasim::app::kExitOk;
+using somasim::app::kExitUsage;
 
 int RunMain(int argc, char** argv) {
   CLI::App app{
@@ -71,13 +72,13 @@ int RunMain(int argc, char** argv) {
     }
     const somasim::solve::SolveSummary summary = somasim::solve::RunSolve(scene, lines, options);
     std::cout << somasim::solve::SummaryJson(summary).dump(2) << "\n";
-    return summary.converged ? kExitOk : kExitUnconverged;
+    return summary.converged ? kExitOk : kExitFailed;
   } catch (const somasim::scene::SceneError& e) {
     std::cerr << "somasim-solve: " << e.what() << "\n";
-    return e.line() == 0 && e.field().empty() ? kExitIo : kExitBadInput;
+    return somasim::scene::ExitCodeOf(e);
   } catch (const somasim::mesh_io::MeshError& e) {
     std::cerr << "somasim-solve: " << e.what() << "\n";
-    return e.kind() == somasim::mesh_io::MeshErrorKind::kIo ? kExitIo : kExitBadInput;
+    return somasim::mesh_io::ExitCodeOf(e);
   } catch (const std::runtime_error& e) {
     std::cerr << "somasim-solve: " << e.what() << "\n";
     return kExitIo;
@@ -91,6 +92,6 @@ int main(int argc, char** argv) {
     return RunMain(argc, argv);
   } catch (const std::exception& e) {
     std::cerr << "somasim-solve: internal error: " << e.what() << "\n";
-    return kExitInternal;
+    return kExitBug;
   }
 }

@@ -26,6 +26,7 @@
 #include <string>
 #include <vector>
 
+#include "common/app/exit_codes.h"
 #include "common/app/scheduling.h"
 #include "common/dds/dds.h"
 #include "common/dds/topics.h"
@@ -34,10 +35,10 @@
 
 namespace {
 
-constexpr int kExitOk = 0;
-constexpr int kExitUsage = 2;
-constexpr int kExitDds = 5;
-constexpr int kExitBug = 70;
+using somasim::app::kExitBug;  // exit codes: common/app/exit_codes.h
+using somasim::app::kExitDds;
+using somasim::app::kExitOk;
+using somasim::app::kExitUsage;
 
 volatile std::sig_atomic_t g_stop = 0;
 

@@ -22,8 +22,8 @@
 #include "common/arm_shm/arm_shm.h"
 #include "haptic_node/haptic_loop.h"
 #include "haptic_node/kinematics.h"
-#include "haptic_node/latest_slot.h"
-#include "server/contact/local_force_model.h"
+#include "common/lockfree/latest_slot.h"
+#include "common/force_model/local_force_model.h"
 
 namespace somasim::haptic {
 namespace {
@@ -129,7 +129,7 @@ void BM_HapticTickCompute(benchmark::State& state) {
   HapticLoopSettings settings;
   settings.output.max_force = k.max_force();
   HapticLoop loop(k, settings);
-  LatestSlot<PackedForceModel> slot;
+  lockfree::LatestSlot<ReceivedForceModel> slot;
   somasim_arm_state_t s{};
   s.num_joints = 6;
   int64_t now = 1'000'000'000;
@@ -141,7 +141,7 @@ void BM_HapticTickCompute(benchmark::State& state) {
     in.now_ns = now;
     in.header_problem = block->HeaderProblem();
     in.read = arm::ReadState(block->block().state, &in.state);
-    PackedForceModel model;
+    ReceivedForceModel model;
     uint64_t version = 0;
     const bool have = slot.Read(&model, &version) && version > 0;
     in.model = have ? &model : nullptr;
@@ -149,17 +149,17 @@ void BM_HapticTickCompute(benchmark::State& state) {
   };
   // A probe pressing 2 mm into a surface through the arm's home pose, engaged.
   const ArmPose home = k.ToScene(k.Forward(k.JointsFromEncoders(s.joint)));
-  contact::LocalForceModel m;
+  force_model::LocalForceModel m;
   m.in_contact = true;
-  m.contact_point = home.position - Eigen::Vector3d(0, 0, 0.01);
+  force_model::Vec(m.contact_point) = home.position - Eigen::Vector3d(0, 0, 0.01);
   m.contact_stiffness = 600.0;
   for (int i = 0; i < 50; ++i) {
-    slot.Write(Pack(m, now));
+    slot.Write({m, now});
     tick();
   }
-  m.contact_point = home.position + Eigen::Vector3d(0, 0, 0.002);
+  force_model::Vec(m.contact_point) = home.position + Eigen::Vector3d(0, 0, 0.002);
   for (int i = 0; i < 600; ++i) {
-    slot.Write(Pack(m, now));
+    slot.Write({m, now});
     tick();
   }
   std::vector<double> ns;
@@ -167,14 +167,14 @@ void BM_HapticTickCompute(benchmark::State& state) {
   for (auto _ : state) {
     ++s.heartbeat;
     arm::WriteState(&block->block().state, s);
-    slot.Write(Pack(m, now));
+    slot.Write({m, now});
     now += 1'000'000;
     const Clock::time_point t0 = Clock::now();
     HapticLoopInput in;
     in.now_ns = now;
     in.header_problem = block->HeaderProblem();
     in.read = arm::ReadState(block->block().state, &in.state);
-    PackedForceModel model;
+    ReceivedForceModel model;
     uint64_t version = 0;
     const bool have = slot.Read(&model, &version) && version > 0;
     in.model = have ? &model : nullptr;

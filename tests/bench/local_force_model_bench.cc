@@ -9,7 +9,7 @@
 #include <random>
 #include <vector>
 
-#include "server/contact/local_force_model.h"
+#include "server/contact/force_model_maker.h"
 
 namespace somasim::contact {
 namespace {
@@ -39,7 +39,7 @@ void LocalForceModelEval(benchmark::State& state) {
   }
   size_t k = 0;
   for (auto _ : state) {
-    ForceSample s = EvaluateLocalForceModel(model, xs[k], vs[k]);
+    force_model::ForceSample s = force_model::EvaluateLocalForceModel(model, xs[k], vs[k]);
     benchmark::DoNotOptimize(s);
     k = (k + 1) & (kCount - 1);
   }

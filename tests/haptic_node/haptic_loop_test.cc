@@ -6,8 +6,7 @@
 // usable device; the clutch holds the tool while the arm moves; the emergency stop zeroes force
 // in the same tick; a contact model's force reaches the motors as J^T F, clamped to the arm's
 // 8 N whatever the model says (1e9 N), a NaN model latches, a stale model ramps to zero in 60 ms;
-// ticks allocate nothing. Also the slot that hands models to the loop (no torn value under a
-// concurrent writer) and the loop's timing histogram.
+// ticks allocate nothing. Also the loop's timing histogram.
 #include "haptic_node/haptic_loop.h"
 
 #include <gtest/gtest.h>
@@ -19,7 +18,6 @@
 #include <string>
 #include <thread>
 
-#include "haptic_node/latest_slot.h"
 #include "haptic_node/period_stats.h"
 #include "tests/support/allocation_counter.h"
 #include "tests/support/sanitizer.h"
@@ -57,14 +55,14 @@ class Bench {
   }
   // A fresh model: a contact plane `depth` [m] above the tool, normal +z in the scene.
   void Press(double depth, double stiffness = 300.0, double limit = 10.0) {
-    contact::LocalForceModel m;
+    force_model::LocalForceModel m;
     m.sequence = ++sequence_;
     m.in_contact = true;
-    m.contact_point = ToolPosition() + Vector3d(0, 0, depth);
-    m.normal = Vector3d::UnitZ();
+    force_model::Vec(m.contact_point) = ToolPosition() + Vector3d(0, 0, depth);
+    force_model::Vec(m.normal) = Vector3d::UnitZ();
     m.contact_stiffness = stiffness;
     m.force_limit = limit;
-    model_ = Pack(m, now_);
+    model_ = {m, now_};
     has_model_ = true;
   }
   void Refresh() { model_.received_ns = now_; }
@@ -93,7 +91,7 @@ class Bench {
   arm::ReadResult read_ = arm::ReadResult::kOk;
   const char* header_problem_ = nullptr;
   bool driver_alive_ = true;
-  PackedForceModel model_;
+  ReceivedForceModel model_;
   bool has_model_ = false;
   uint64_t sequence_ = 0;
   int64_t now_ = 1000 * kMs;
@@ -318,12 +316,12 @@ TEST(HapticLoop, HugeModelsAreClampedToTheArmsLimitAndNaNModelsLatch) {
   EXPECT_NEAR(max, 8.0, 1e-9);
   EXPECT_FALSE(b.loop_.fault());
   b.Press(0.005);
-  b.model_.contact_stiffness = std::numeric_limits<double>::quiet_NaN();
+  b.model_.model.contact_stiffness = std::numeric_limits<double>::quiet_NaN();
   b.Tick();
   EXPECT_TRUE(b.loop_.fault());
   EXPECT_EQ(b.loop_.arm_force().norm(), 0.0);
   b.Press(0.005);
-  b.model_.normal[0] = std::numeric_limits<double>::infinity();
+  b.model_.model.normal[0] = std::numeric_limits<double>::infinity();
   b.Tick();
   EXPECT_TRUE(b.loop_.fault());
 }
@@ -360,47 +358,6 @@ TEST(HapticLoop, TicksAllocateNothing) {
   b.read_ = arm::ReadResult::kTorn;
   b.Tick();
   EXPECT_EQ(counter.count(), 0);
-}
-
-// The slot the wire thread hands models through: a reader never sees a half-written value.
-TEST(LatestSlot, AReaderUnderAConcurrentWriterNeverSeesATornValue) {
-  struct Value {
-    uint64_t words[24];
-  };
-  LatestSlot<Value> slot;
-  Value v{};
-  uint64_t version = 99;
-  EXPECT_TRUE(slot.Read(&v, &version));
-  EXPECT_EQ(version, 0u);
-  std::atomic<bool> done{false};
-  std::thread writer([&] {
-    Value w{};
-    for (uint64_t i = 1; !done.load(std::memory_order_relaxed); ++i) {
-      for (uint64_t& x : w.words) x = i;
-      slot.Write(w);
-      // A breath between writes (the real writer writes at 200 Hz), so reads also get through.
-      const auto until = std::chrono::steady_clock::now() + std::chrono::microseconds(2);
-      while (std::chrono::steady_clock::now() < until) {
-      }
-    }
-  });
-  // The writer's first value, before counting (on a loaded machine the reads could otherwise
-  // all finish before the writer thread first runs).
-  while (!slot.Read(&v, &version) || version == 0) std::this_thread::yield();
-  const int reads = testing::kUnderSanitizer ? 100000 : 2000000;
-  int ok = 0;
-  uint64_t last = 0;
-  for (int i = 0; i < reads; ++i) {
-    if (!slot.Read(&v, &version)) continue;
-    if (version == 0) continue;
-    ++ok;
-    for (uint64_t x : v.words) ASSERT_EQ(x, v.words[0]) << "torn at read " << i;
-    ASSERT_GE(version, last);  // never older than what was read before
-    last = version;
-  }
-  done = true;
-  writer.join();
-  EXPECT_GT(ok, reads / 100);  // reads that overlap a write retry; none may tear
 }
 
 TEST(MicrosecondHistogram, QuantilesCountsAndTheMaximum) {

@@ -29,7 +29,7 @@
 #include <vector>
 
 #include "common/dds/topics.h"
-#include "server/contact/force_model_wire.h"
+#include "common/force_model/force_model_wire.h"
 #include "tests/server/app/session_client.h"
 #include "tests/support/sanitizer.h"
 #include "viewer/scene_receiver.h"
@@ -376,9 +376,12 @@ TEST(SceneReceiver, ShowsTheRenderedForceAndTheGraspedPoints) {
     commands.Write(c);
     ASSERT_TRUE(PollUntil(&r, [&] { return r.tools().at("jaws").position[2] == z; }));
   };
-  const auto model = [&](const contact::LocalForceModel& m) {
+  const auto model = [&](const force_model::LocalForceModel& m,
+                         const std::vector<int32_t>& held = {}, uint32_t num_held = 0) {
     somasim_wire_ForceModel w{};
-    contact::ToWire(m, &w);
+    force_model::ToWire(m, &w);
+    force_model::HeldNodesToWire(held, &w);
+    if (num_held > 0) w.num_held = num_held;  // a hostile count
     w.tool = const_cast<char*>("jaws");
     w.format_version = dds::kWireFormatVersion;
     w.server_id = 9;
@@ -387,7 +390,7 @@ TEST(SceneReceiver, ShowsTheRenderedForceAndTheGraspedPoints) {
   };
   // In contact 2 mm below the surface z = 0 at k_n = 500 N/m: 1 N up.
   command(-0.002, 1);
-  contact::LocalForceModel touch;
+  force_model::LocalForceModel touch;
   touch.sequence = 1;
   touch.in_contact = true;
   touch.contact_stiffness = 500.0;
@@ -399,34 +402,42 @@ TEST(SceneReceiver, ShowsTheRenderedForceAndTheGraspedPoints) {
   EXPECT_TRUE(r.tools().at("jaws").held_nodes.empty());
 
   // Unusable models: dropped and counted, the last good one kept.
-  contact::LocalForceModel bad = touch;
+  force_model::LocalForceModel bad = touch;
   bad.sequence = 2;
   bad.contact_stiffness = std::numeric_limits<double>::quiet_NaN();
   model(bad);  // keep-last 1 per tool: one at a time
   ASSERT_TRUE(PollUntil(&r, [&] { return r.counters().bad_tool_samples == 1; }));
   bad = touch;
   bad.sequence = 3;
-  bad.tissue_stiffness(0, 1) = 100.0;  // not symmetric
+  force_model::Mat(bad.tissue_stiffness)(0, 1) = 100.0;  // not symmetric
   model(bad);
   ASSERT_TRUE(PollUntil(&r, [&] { return r.counters().bad_tool_samples == 2; }))
       << r.counters().bad_tool_samples;
   EXPECT_NEAR(r.tools().at("jaws").Force().z(), 1.0, 1e-12);
 
-  // The jaws close 1 mm above node 0: nodes 0 and 1 are held, nearest first.
+  // The jaws close 1 mm above node 0: the server holds nodes 0 and 1, nearest first, and says so.
   command(0.001, 2);
-  contact::LocalForceModel grasp;
+  force_model::LocalForceModel grasp;
   grasp.sequence = 4;
   grasp.grasping = true;
-  grasp.grasp_anchor = Eigen::Vector3d(0.0, 0.0, 0.0);
-  grasp.grasp_stiffness = 200.0 * Eigen::Matrix3d::Identity();
-  model(grasp);
+  force_model::Vec(grasp.grasp_anchor) = Eigen::Vector3d(0.0, 0.0, 0.0);
+  force_model::Mat(grasp.grasp_stiffness) = 200.0 * Eigen::Matrix3d::Identity();
+  model(grasp, {0, 1});
   ASSERT_TRUE(PollUntil(&r, [&] { return r.tools().at("jaws").grasping; }));
   EXPECT_EQ(r.tools().at("jaws").held_nodes, (std::vector<uint32_t>{0, 1}));
   EXPECT_EQ(r.tools().at("jaws").held_organ, "a");
   EXPECT_NEAR(r.tools().at("jaws").Force().z(), -0.2, 1e-12);  // pulled back to the anchor
+  // A sample whose held nodes are not the organ's, or too many: dropped and counted, the last
+  // good grasp kept.
+  grasp.sequence = 5;
+  model(grasp, {0, 1000});
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.counters().bad_tool_samples == 3; }));
+  model(grasp, {0}, 100000);
+  ASSERT_TRUE(PollUntil(&r, [&] { return r.counters().bad_tool_samples == 4; }));
+  EXPECT_EQ(r.tools().at("jaws").held_nodes, (std::vector<uint32_t>{0, 1}));
   // Released: no grasped points.
-  contact::LocalForceModel open;
-  open.sequence = 5;
+  force_model::LocalForceModel open;
+  open.sequence = 6;
   model(open);
   ASSERT_TRUE(PollUntil(&r, [&] { return !r.tools().at("jaws").grasping; }));
   EXPECT_TRUE(r.tools().at("jaws").held_nodes.empty());

@@ -215,10 +215,9 @@ class ChildProcess {
 };
 
 std::string ReadDeployFile(const std::string& name) {
-  // The deploy profiles live at ${PROJECT_SOURCE_DIR}/deploy; this file is
-  // tests/common/dds/dds_test.cc below it.
-  const std::filesystem::path path =
-      std::filesystem::path(__FILE__).parent_path() / "../../../deploy" / name;
+  // The deploy profiles live at ${PROJECT_SOURCE_DIR}/deploy (not found through __FILE__, which
+  // a compiler launcher may make relative to the build tree).
+  const std::filesystem::path path = std::filesystem::path(SOMASIM_DEPLOY_DIR) / name;
   std::ifstream file(path);
   std::stringstream text;
   text << file.rdbuf();

@@ -7,7 +7,7 @@
 #include <limits>
 
 #include "common/mesh_gen/builtin_organs.h"
-#include "server/contact/local_force_model.h"
+#include "server/contact/force_model_maker.h"
 #include "server/contact/tissue_compliance.h"
 #include "server/models/mass_spring_model.h"
 #include "tests/server/contact/contact_fixtures.h"
@@ -17,6 +17,10 @@
 
 namespace somasim::contact {
 namespace {
+
+using force_model::EvaluateLocalForceModel;
+using force_model::ForceSample;
+using force_model::LocalForceModelError;
 
 // A probe above the organ's top node, pushed `depth` [m] below where the surface was.
 struct Pressing {

@@ -1,7 +1,8 @@
-// The haptic local force model (local_force_model.h): consistency with the server's force, the
+// The haptic local force model (common/force_model/local_force_model.h, made by
+// server/contact/force_model_maker.h): consistency with the server's force, the
 // series-stiffness law, unilateral frictionless contact, damping, the clamp, and boundedness for
 // any model whatever its bits (SPEC §7: NaN/Inf never reaches the arm).
-#include "server/contact/local_force_model.h"
+#include "server/contact/force_model_maker.h"
 
 #include <gtest/gtest.h>
 
@@ -25,6 +26,11 @@ namespace {
 
 using Eigen::Matrix3d;
 using Eigen::Vector3d;
+using force_model::EvaluateLocalForceModel;
+using force_model::ForceSample;
+using force_model::LocalForceModelError;
+using force_model::Mat;
+using force_model::Vec;
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr double kInf = std::numeric_limits<double>::infinity();
@@ -104,16 +110,16 @@ TEST(LocalForceModel, SeriesStiffnessesFollowTheHandComputation) {
   EXPECT_NEAR(model.contact_stiffness, kn, 1e-12 * kn);
   const Matrix3d kg =
       Vector3d(1.0 / (0.001 + 0.01), 1.0 / (0.001 + 0.02), 1.0 / (0.001 + 0.03)).asDiagonal();
-  EXPECT_LE((model.grasp_stiffness - kg).norm(), 1e-12 * kg.norm());
+  EXPECT_LE((Mat(model.grasp_stiffness) - kg).norm(), 1e-12 * kg.norm());
   const Matrix3d k_tissue = Vector3d(100.0, 50.0, 1.0 / 0.03).asDiagonal();
-  EXPECT_LE((model.tissue_stiffness - k_tissue).norm(), 1e-12 * k_tissue.norm());
+  EXPECT_LE((Mat(model.tissue_stiffness) - k_tissue).norm(), 1e-12 * k_tissue.norm());
   // The unloaded plane: the proxy force 1000 N/m × 2 mm = 2 N moved the surface by 2 N × 0.03
   // m/N = 6 cm inward, so it lies 6 cm above the proxy.
-  EXPECT_NEAR(model.contact_point.z(), contact.proxy.z() + 0.06, 1e-12);
+  EXPECT_NEAR(model.contact_point[2], contact.proxy.z() + 0.06, 1e-12);
   LocalForceModel contact_only = model;
   contact_only.grasping = false;
   for (const double d : {1e-4, 1e-3, 5e-3}) {
-    const Vector3d x = contact_only.contact_point - d * Vector3d::UnitZ();
+    const Vector3d x = Vec(contact_only.contact_point) - d * Vector3d::UnitZ();
     const ForceSample s = EvaluateLocalForceModel(contact_only, x, Vector3d::Zero());
     EXPECT_TRUE(s.in_contact);
     EXPECT_NEAR(s.force.z(), kn * d, 1e-12);
@@ -131,11 +137,11 @@ TEST(LocalForceModel, ContactIsUnilateralAndNormalOnly) {
         MakeLocalForceModel(PressedContact(RandomCompliance(&rng), n, 0.002), 1, 0.0);
     const Vector3d tangent = RandomUnit(&rng).cross(n).normalized();
     const double t = offset(rng);
-    const Vector3d above = model.contact_point + 1e-4 * n + t * tangent;
+    const Vector3d above = Vec(model.contact_point) + 1e-4 * n + t * tangent;
     const ForceSample s = EvaluateLocalForceModel(model, above, Vector3d::Zero());
     EXPECT_FALSE(s.in_contact);
     EXPECT_EQ(s.force, Vector3d::Zero());
-    const Vector3d below = model.contact_point - 1e-3 * n + t * tangent;
+    const Vector3d below = Vec(model.contact_point) - 1e-3 * n + t * tangent;
     const ForceSample b = EvaluateLocalForceModel(model, below, Vector3d::Zero());
     EXPECT_TRUE(b.in_contact);
     EXPECT_GT(b.force.dot(n), 0.0);
@@ -195,7 +201,7 @@ TEST(LocalForceModel, ForceIsClampedToTheLimitKeepingItsDirection) {
   // Huge but finite numbers: still the limit, still finite.
   LocalForceModel huge;
   huge.grasping = true;
-  huge.grasp_stiffness = 1e200 * Matrix3d::Identity();
+  Mat(huge.grasp_stiffness) = 1e200 * Matrix3d::Identity();
   huge.force_limit = 5.0;
   const ForceSample s = EvaluateLocalForceModel(huge, Vector3d(1.0, 2.0, 3.0), Vector3d::Zero());
   EXPECT_TRUE(s.clamped);
@@ -213,8 +219,8 @@ std::vector<double*> Doubles(LocalForceModel* m) {
     d.push_back(&m->bias_force[i]);
   }
   for (int i = 0; i < 9; ++i) {
-    d.push_back(m->grasp_stiffness.data() + i);
-    d.push_back(m->tissue_stiffness.data() + i);
+    d.push_back(&m->grasp_stiffness[i]);
+    d.push_back(&m->tissue_stiffness[i]);
   }
   return d;
 }
@@ -232,7 +238,7 @@ LocalForceModel GoodModel() {
 // position or velocity — gives zero force, flagged invalid.
 TEST(LocalForceModel, NonFiniteModelOrDeviceStateGivesZeroForceFlaggedInvalid) {
   const LocalForceModel good = GoodModel();
-  const Vector3d x = good.contact_point - 0.001 * good.normal;
+  const Vector3d x = Vec(good.contact_point) - 0.001 * Vec(good.normal);
   ASSERT_FALSE(EvaluateLocalForceModel(good, x, Vector3d::Zero()).invalid);
   ASSERT_NE(EvaluateLocalForceModel(good, x, Vector3d::Zero()).force, Vector3d::Zero());
   LocalForceModel copy = good;
@@ -248,7 +254,7 @@ TEST(LocalForceModel, NonFiniteModelOrDeviceStateGivesZeroForceFlaggedInvalid) {
       const double* field = Doubles(&model)[k];
       const bool display_only =
           field == &model.sim_time ||
-          (field >= model.tissue_stiffness.data() && field < model.tissue_stiffness.data() + 9);
+          (field >= model.tissue_stiffness && field < model.tissue_stiffness + 9);
       if (display_only) continue;
       EXPECT_TRUE(s.invalid) << "field " << k;
       EXPECT_EQ(s.force, Vector3d::Zero()) << "field " << k;
@@ -279,13 +285,13 @@ TEST(LocalForceModel, ABiasForceIsAddedEverywhereAndClampedWithTheRest) {
     EXPECT_EQ(at.force, carried.bias_force);
   }
   LocalForceModel heavy = model;
-  heavy.bias_force = Vector3d(0.0, 0.0, -50.0);
+  Vec(heavy.bias_force) = Vector3d(0.0, 0.0, -50.0);
   const ForceSample s = EvaluateLocalForceModel(heavy, Vector3d::Zero(), Vector3d::Zero());
   EXPECT_TRUE(s.clamped);
   EXPECT_NEAR(s.force.norm(), heavy.force_limit, 1e-12);
   carried.bias_force.x() = kNaN;
   EXPECT_THROW(MakeLocalForceModel(carried, 2, 0.0), std::invalid_argument);
-  heavy.bias_force.y() = kInf;
+  heavy.bias_force[1] = kInf;
   EXPECT_NE(std::string(LocalForceModelError(heavy)).find("bias_force"), std::string::npos);
 }
 
@@ -346,7 +352,7 @@ TEST(LocalForceModel, MakingAndEvaluatingAllocateNothing) {
   const LocalForceModel model = GoodModel();
   std::vector<Vector3d> xs;
   xs.reserve(64);
-  for (int i = 0; i < 64; ++i) xs.push_back(model.contact_point + 1e-4 * (i - 32) * model.normal);
+  for (int i = 0; i < 64; ++i) xs.push_back(Vec(model.contact_point) + 1e-4 * (i - 32) * Vec(model.normal));
   Vector3d sum = Vector3d::Zero();
   {
     somasim::testing::AllocationCounter counter;
@@ -375,42 +381,42 @@ TEST(LocalForceModelError, NamesEachBadFieldAndAcceptsGoodModels) {
     return text.find(part) != std::string::npos;
   };
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->sim_time = kNaN; }), "sim_time"));
-  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->contact_point.y() = kInf; }),
+  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->contact_point[1] = kInf; }),
                   "contact_point is not finite"));
   EXPECT_TRUE(
-      has(error_of([](LocalForceModel* m) { m->normal.x() = kNaN; }), "normal is not finite"));
+      has(error_of([](LocalForceModel* m) { m->normal[0] = kNaN; }), "normal is not finite"));
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->contact_stiffness = -kInf; }),
                   "contact_stiffness is not finite"));
-  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->grasp_anchor.z() = kNaN; }),
+  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->grasp_anchor[2] = kNaN; }),
                   "grasp_anchor is not finite"));
-  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->grasp_stiffness(1, 2) = kInf; }),
+  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { Mat(m->grasp_stiffness)(1, 2) = kInf; }),
                   "grasp_stiffness is not finite"));
-  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->tissue_stiffness(0, 0) = kNaN; }),
+  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { Mat(m->tissue_stiffness)(0, 0) = kNaN; }),
                   "tissue_stiffness is not finite"));
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->damping = kNaN; }), "damping"));
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->force_limit = kInf; }), "force_limit"));
   EXPECT_TRUE(
-      has(error_of([](LocalForceModel* m) { m->normal *= 1.001; }), "normal is not a unit vector"));
+      has(error_of([](LocalForceModel* m) { Vec(m->normal) *= 1.001; }), "normal is not a unit vector"));
   // Out of contact the normal is not used: its length does not matter.
   EXPECT_EQ(error_of([](LocalForceModel* m) {
               m->in_contact = false;
-              m->normal *= 2.0;
+              Vec(m->normal) *= 2.0;
             }),
             "accepted");
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->contact_stiffness = -1.0; }),
                   "contact_stiffness is negative"));
-  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->grasp_stiffness(0, 1) += 1.0; }),
+  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { Mat(m->grasp_stiffness)(0, 1) += 1.0; }),
                   "grasp_stiffness is not symmetric"));
-  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->grasp_stiffness(2, 2) = -50.0; }),
+  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { Mat(m->grasp_stiffness)(2, 2) = -50.0; }),
                   "grasp_stiffness is not positive semi-definite"));
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) {
-                    m->grasp_stiffness = Vector3d(10.0, 10.0, 0.0).asDiagonal();
-                    m->grasp_stiffness(0, 2) = m->grasp_stiffness(2, 0) = 1.0;  // det < 0
+                    Mat(m->grasp_stiffness) = Vector3d(10.0, 10.0, 0.0).asDiagonal();
+                    Mat(m->grasp_stiffness)(0, 2) = Mat(m->grasp_stiffness)(2, 0) = 1.0;  // det < 0
                   }),
                   "grasp_stiffness is not positive semi-definite"));
-  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->tissue_stiffness(2, 0) -= 1.0; }),
+  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { Mat(m->tissue_stiffness)(2, 0) -= 1.0; }),
                   "tissue_stiffness is not symmetric"));
-  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->tissue_stiffness *= -1.0; }),
+  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { Mat(m->tissue_stiffness) *= -1.0; }),
                   "tissue_stiffness is not positive semi-definite"));
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->damping = -0.1; }), "damping is negative"));
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->force_limit = 0.0; }),
@@ -419,7 +425,7 @@ TEST(LocalForceModelError, NamesEachBadFieldAndAcceptsGoodModels) {
                   "force_limit is not positive"));
   // A PSD but singular grasp stiffness (a grasp stiff in two directions only) is fine.
   EXPECT_EQ(error_of([](LocalForceModel* m) {
-              m->grasp_stiffness = Vector3d(10.0, 10.0, 0.0).asDiagonal();
+              Mat(m->grasp_stiffness) = Vector3d(10.0, 10.0, 0.0).asDiagonal();
             }),
             "accepted");
 }
@@ -471,7 +477,7 @@ TEST(MakeLocalForceModel, RefusesBadContactData) {
       1, 0.0);
   EXPECT_EQ(LocalForceModelError(rigid), nullptr);
   EXPECT_NEAR(rigid.contact_stiffness, good.tool_stiffness, 1e-9);
-  EXPECT_LE((rigid.grasp_stiffness - good.tool_stiffness * Matrix3d::Identity()).norm(), 1e-9);
+  EXPECT_LE((Mat(rigid.grasp_stiffness) - good.tool_stiffness * Matrix3d::Identity()).norm(), 1e-9);
 }
 
 }  // namespace

@@ -21,7 +21,7 @@
 
 #include "common/mesh/topology.h"
 #include "common/mesh_gen/builtin_organs.h"
-#include "server/contact/local_force_model.h"
+#include "server/contact/force_model_maker.h"
 #include "server/models/fem/fem_model.h"
 #include "server/models/mass_spring_model.h"
 #include "server/models/molecular_model.h"
@@ -31,6 +31,10 @@
 
 namespace somasim::contact {
 namespace {
+
+using force_model::EvaluateLocalForceModel;
+using force_model::ForceSample;
+using force_model::LocalForceModelError;
 
 using Eigen::Matrix3d;
 using Eigen::Vector3d;

@@ -15,13 +15,16 @@
 
 #include "common/mesh_gen/builtin_organs.h"
 #include "server/reduce/builder.h"
-#include "server/reduce/reduced_file.h"
+#include "server/organs/reduced_file.h"
 #include "tests/support/mesh_fixtures.h"
 #include "tests/support/run_program.h"
 #include "tests/support/sanitizer.h"
 
 namespace somasim::reduce {
 namespace {
+
+using organs::LoadedReducedModel;
+using organs::LoadReducedModel;
 
 std::string Scene(const std::string& name) {
   return "'" + std::string(SOMASIM_TEST_DATA_DIR) + "/scenes/" + name + "'";

@@ -68,12 +68,12 @@ TEST(Session, PressingTheProbeGivesContactEventsAndAPushingForceModel) {
     }
   }
   EXPECT_TRUE(began);
-  const contact::LocalForceModel& m = session.tool(0).force_model;
+  const force_model::LocalForceModel& m = session.tool(0).force_model;
   EXPECT_TRUE(m.in_contact);
   EXPECT_EQ(session.tool(0).force_organ, 0);
   EXPECT_EQ(m.sequence, 41u);
   EXPECT_GT(m.contact_stiffness, 0.0);
-  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+  const force_model::ForceSample f = force_model::EvaluateLocalForceModel(
       m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
   EXPECT_GT(f.force.z(), 0.1);  // the tissue pushes the probe up [N]
   EXPECT_EQ(session.organ_steps(), 41u);
@@ -118,9 +118,9 @@ TEST(Session, GraspingAndPullingLiftsTheTissueAndReleaseLetsGo) {
         g, At(top + (0.005 * i / 50.0 - 0.001) * Eigen::Vector3d::UnitZ(), 0.0, ++seq));
     session.Step();
   }
-  const contact::LocalForceModel& m = session.tool(g).force_model;
+  const force_model::LocalForceModel& m = session.tool(g).force_model;
   EXPECT_TRUE(m.grasping);
-  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+  const force_model::ForceSample f = force_model::EvaluateLocalForceModel(
       m, session.tool(g).command.pose.tip, Eigen::Vector3d::Zero());
   EXPECT_LT(f.force.z(), -0.05);                      // the tissue pulls the jaws down [N]
   EXPECT_GT(TopOf(session, 0).z(), top.z() + 0.001);  // and is lifted
@@ -182,10 +182,10 @@ TEST(Session, AnEfgOrganIsPressedByTheProbeAndGivesAForceModel) {
       in_contact.empty() ? 0.0 : 1e6 * in_contact.back(),
       static_cast<long long>(o.built.efg->Factorisations(*o.state)));
   EXPECT_EQ(session.rejected_steps(), 0u);
-  const contact::LocalForceModel& m = session.tool(0).force_model;
+  const force_model::LocalForceModel& m = session.tool(0).force_model;
   EXPECT_TRUE(m.in_contact);
   EXPECT_EQ(session.tool(0).force_organ, 0);
-  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+  const force_model::ForceSample f = force_model::EvaluateLocalForceModel(
       m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
   EXPECT_GT(f.force.z(), 0.1);  // the tissue pushes the probe up [N]
   EXPECT_GT((o.state->positions - rest).colwise().norm().maxCoeff(), 1e-3);  // pressed in [m]
@@ -252,10 +252,10 @@ TEST(Session, AnEfgHybridOrganIsPressedByTheProbeAndGivesAForceModel) {
       static_cast<long long>(hybrid.Factorisations(*o.state)),
       static_cast<long long>(hybrid.FarSolves(*o.state)));
   EXPECT_EQ(session.rejected_steps(), 0u);
-  const contact::LocalForceModel& m = session.tool(0).force_model;
+  const force_model::LocalForceModel& m = session.tool(0).force_model;
   EXPECT_TRUE(m.in_contact);
   EXPECT_EQ(session.tool(0).force_organ, 0);
-  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+  const force_model::ForceSample f = force_model::EvaluateLocalForceModel(
       m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
   EXPECT_GT(f.force.z(), 0.1);  // the tissue pushes the probe up [N]
   EXPECT_GT((o.state->positions - rest).colwise().norm().maxCoeff(), 1e-3);  // pressed in [m]
@@ -393,9 +393,9 @@ TEST(Session, ClosedSurfaceBuiltinIsAnAnchoredShellThatHoldsItsShapeAndRecovers)
     session.SetToolCommand(0, At(top - depth * Eigen::Vector3d::UnitZ(), 1.0, ++seq));
     session.Step();
   }
-  const contact::LocalForceModel& m = session.tool(0).force_model;
+  const force_model::LocalForceModel& m = session.tool(0).force_model;
   ASSERT_TRUE(m.in_contact);
-  const contact::ForceSample f = contact::EvaluateLocalForceModel(
+  const force_model::ForceSample f = force_model::EvaluateLocalForceModel(
       m, session.tool(0).command.pose.tip, Eigen::Vector3d::Zero());
   EXPECT_GT(f.force.z(), 0.05) << "the tissue pushes the probe up [N]";
   EXPECT_LT(f.force.z(), 5.0) << "a palpation, not a wall [N]";

@@ -17,7 +17,7 @@
 #include "common/mesh/geometry.h"
 #include "common/mesh_gen/builtin_organs.h"
 #include "common/mesh_io/mesh_io.h"
-#include "server/solve/organ_builder.h"
+#include "server/organs/organ_builder.h"
 #include "server/solve/solve_runner.h"
 #include "tests/server/solve/solve_fixtures.h"
 #include "tests/support/mesh_fixtures.h"
@@ -25,6 +25,12 @@
 
 namespace somasim::solve {
 namespace {
+
+using organs::BuildOrgan;
+using organs::BuiltOrgan;
+using organs::HistoryScale;
+using organs::PressureForces;
+using organs::UnheldParts;
 
 constexpr double kLength = 0.1, kWidth = 0.02;  // [m] the test bar
 

@@ -13,7 +13,7 @@
 #include "server/models/reduced/kl_model.h"
 #include "server/models/reduced/nonlinear_model.h"
 
-namespace somasim::reduce {
+namespace somasim::organs {
 
 inline constexpr char kReducedMagic[8] = {'S', 'O', 'M', 'A', 'R', 'E', 'D', '\n'};
 inline constexpr uint32_t kReducedFormatVersion = 1;
@@ -65,4 +65,4 @@ LoadedReducedModel DecodeReducedModel(const std::string& bytes, const std::strin
                                       const mesh::TetMesh* mesh);
 LoadedReducedModel LoadReducedModel(const std::string& path, const mesh::TetMesh* mesh);
 
-}  // namespace somasim::reduce
+}  // namespace somasim::organs

@@ -1,4 +1,4 @@
-#include "server/reduce/reduced_file.h"
+#include "server/organs/reduced_file.h"
 
 #include <fcntl.h>
 #include <unistd.h>
@@ -14,7 +14,7 @@
 
 #include "common/recording/recording_file.h"
 
-namespace somasim::reduce {
+namespace somasim::organs {
 namespace {
 
 using models::reduced::CreepCurve;
@@ -480,4 +480,4 @@ const Eigen::MatrixXd& LoadedReducedModel::modes() const {
   return model != nullptr ? model->data().modes : nonlinear->data().modes;
 }
 
-}  // namespace somasim::reduce
+}  // namespace somasim::organs

@@ -1,7 +1,7 @@
-// The reduced-model file (server/reduce/reduced_file.h): a round trip keeps every array bit for
+// The reduced-model file (server/organs/reduced_file.h): a round trip keeps every array bit for
 // bit; a file that is truncated anywhere, corrupted anywhere, of another version, for another
 // mesh, inconsistent or holding a model that is not one is refused with its reason.
-#include "server/reduce/reduced_file.h"
+#include "server/organs/reduced_file.h"
 
 #include <gtest/gtest.h>
 
@@ -21,7 +21,7 @@
 #include "server/models/reduced/reduce_fem.h"
 #include "tests/support/temp_files.h"
 
-namespace somasim::reduce {
+namespace somasim::organs {
 namespace {
 
 using Eigen::Vector3d;
@@ -387,4 +387,4 @@ TEST(ReducedFile, RefusesABadNonlinearModelByName) {
 }
 
 }  // namespace
-}  // namespace somasim::reduce
+}  // namespace somasim::organs

@@ -18,7 +18,7 @@
 #include "server/models/meshless/efg_model.h"
 #include "server/models/tissue_model.h"
 
-namespace somasim::solve {
+namespace somasim::organs {
 
 struct BuiltOrgan {
   std::string id;
@@ -71,4 +71,4 @@ double HistoryScale(const scene::Load& load, double t);
 mesh::Points PressureForces(const mesh::Points& rest, const mesh::Triangles& triangles,
                             const std::vector<int32_t>& nodes, double pressure);
 
-}  // namespace somasim::solve
+}  // namespace somasim::organs

@@ -1,8 +1,9 @@
-// A single-writer "newest value" slot between two threads of one process: the haptic node's DDS
-// thread hands the newest local force model to the 1 kHz loop through one, and the loop hands
-// the tool pose back through another. A seqlock, as the arm's shared memory (arm_abi.h): the
-// writer never waits, the reader retries while a write is under way and never sees a torn value.
-// No lock, no allocation, no system call.
+// A single-writer "newest value" slot between two threads of one process: the haptic node's
+// wire thread hands the newest local force model to the 1 kHz loop through one and the loop
+// hands the tool pose back through another; the server's physics thread hands each tool's force
+// model to its writer thread. A seqlock, as the arm's shared memory (arm_abi.h): the writer
+// never waits, the reader retries while a write is under way and never sees a torn value. No
+// lock, no allocation, no system call.
 #pragma once
 
 #include <array>
@@ -11,7 +12,7 @@
 #include <cstring>
 #include <type_traits>
 
-namespace somasim::haptic {
+namespace somasim::lockfree {
 
 template <typename T>
 class LatestSlot {
@@ -60,4 +61,4 @@ class LatestSlot {
   std::array<std::atomic<uint64_t>, kWords> words_{};
 };
 
-}  // namespace somasim::haptic
+}  // namespace somasim::lockfree

@@ -1,4 +1,4 @@
-#include "server/solve/organ_builder.h"
+#include "server/organs/organ_builder.h"
 
 #include <algorithm>
 #include <cmath>
@@ -12,9 +12,9 @@
 #include "server/models/mass_spring_model.h"
 #include "server/models/molecular_model.h"
 #include "server/models/position_based_model.h"
-#include "server/reduce/reduced_file.h"
+#include "server/organs/reduced_file.h"
 
-namespace somasim::solve {
+namespace somasim::organs {
 namespace {
 
 using scene::Model;
@@ -441,8 +441,8 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
       std::filesystem::path path(organ.model().reduced_kl().file());
       if (path.is_relative()) path = std::filesystem::path(scene_dir) / path;
       try {
-        out.model = reduce::LoadReducedModel(path.string(), &out.volume).Release();
-      } catch (const reduce::ReducedFileError& e) {
+        out.model = LoadReducedModel(path.string(), &out.volume).Release();
+      } catch (const ReducedFileError& e) {
         throw lines.Error(out.field + ".model.reduced_kl.file", e.what());
       }
     } else {
@@ -466,4 +466,4 @@ BuiltOrgan BuildOrgan(const scene::Scene& scene, int index, const scene::SceneLi
   return out;
 }
 
-}  // namespace somasim::solve
+}  // namespace somasim::organs
