@@ -1,10 +1,9 @@
-// somasim-server (SPEC §1, issue 7): runs a session's physics on a paced physics thread and
-// publishes it over Cyclone DDS in the session's partition — the description and topologies
-// (transient-local, for late joiners), mesh frames at 60 Hz as keyframes and deltas, a local
-// force model per tool after every physics step, events, a heartbeat and metrics — and applies
-// the tool and instructor commands it receives. Publishing never blocks the physics: frames,
-// heartbeat, events and metrics go out from a publisher thread that takes the physics's
-// snapshots through lock-free buffers; the force models are best-effort writes.
+// somasim-server (SPEC §1): runs a session's physics and publishes it over Cyclone DDS in the
+// session's partition, as four threads that never wait on each other (docs/architecture.md):
+// the physics (server/runner/physics_runner.h: no DDS, no allocation per tick), the tool link's
+// intake and force-model writer (server/net/tool_link.h), and the publisher
+// (server/net/publisher.h: description, topologies, frames, rigid bodies, heartbeat, metrics,
+// events, instructor commands). Its report: server/app/report.h.
 #pragma once
 
 #include <cstdint>
