@@ -18,6 +18,7 @@
 #include <exception>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <nlohmann/json.hpp>
 #include <set>
@@ -30,8 +31,9 @@
 #include "common/scene/scene.h"
 #include "server/reduce/builder.h"
 #include "server/reduce/evaluate.h"
-#include "server/organs/reduced_file.h"
+#include "server/organs/file_errors.h"
 #include "server/organs/organ_builder.h"
+#include "server/organs/reduced_file.h"
 
 #ifndef SOMASIM_VERSION
 #define SOMASIM_VERSION "unknown"
@@ -181,27 +183,31 @@ int RunEvaluation(const scene::Scene& s, const scene::SceneLines& lines,
   return all_converged ? kExitOk : kExitFailed;
 }
 
-int RunMain(int argc, char** argv) {
+struct Args {
+  std::string scene, out_file, organ_id, evaluate_file, plan_file, nonlinear_file, per_step_file;
+  std::string command;  // the whole command line, for the file's metadata
+};
+
+// The command line into `a`; an exit code when the program ends here, else -1.
+int ParseArgs(int argc, char** argv, Args* a) {
   CLI::App app{
       "somasim-reduce: make a reduced model (seed 000's Karhunen-Loeve model) of a scene's organ "
       "from its full FEM model, by the scene's sampling plan (its reduction block)"};
-  std::string scene_arg, out_file, organ_id, evaluate_file, plan_file, nonlinear_file,
-      per_step_file;
-  app.add_option("scene", scene_arg, "Scene file (*.scene.txtpb) with a reduction block")
+  app.add_option("scene", a->scene, "Scene file (*.scene.txtpb) with a reduction block")
       ->required();
   auto* out_option =
-      app.add_option("--out", out_file, "The reduced model to write (*.somared; must not exist)");
-  app.add_option("--nonlinear-out", nonlinear_file,
+      app.add_option("--out", a->out_file, "The reduced model to write (*.somared; must not exist)");
+  app.add_option("--nonlinear-out", a->nonlinear_file,
                  "Also write the nonlinear reduced model (ECSW) made from the same snapshots "
                  "(*.somared; must not exist; hyperelastic organs)")
       ->needs(out_option);
-  app.add_option("--organ", organ_id, "The organ to reduce (default: the first reduction's)");
+  app.add_option("--organ", a->organ_id, "The organ to reduce (default: the first reduction's)");
   auto* evaluate_option = app.add_option(
-      "--evaluate", evaluate_file,
+      "--evaluate", a->evaluate_file,
       "Instead of building: compare this reduced model with the scene's full model on --plan");
-  app.add_option("--plan", plan_file, "The evaluation plan (*.txtpb, EvaluationPlan)")
+  app.add_option("--plan", a->plan_file, "The evaluation plan (*.txtpb, EvaluationPlan)")
       ->needs(evaluate_option);
-  app.add_option("--per-step", per_step_file,
+  app.add_option("--per-step", a->per_step_file,
                  "With --evaluate: also write each case's per-step errors to this CSV file "
                  "(never overwritten)")
       ->needs(evaluate_option);
@@ -217,218 +223,246 @@ int RunMain(int argc, char** argv) {
     app.exit(e);
     return kExitUsage;
   }
+  if (a->evaluate_file.empty() && a->out_file.empty()) {
+    std::cerr << "somasim-reduce: give --out FILE (build) or --evaluate FILE --plan PLAN\n";
+    return kExitUsage;
+  }
+  if (!a->evaluate_file.empty() && a->plan_file.empty()) {
+    std::cerr << "somasim-reduce: --evaluate needs --plan\n";
+    return kExitUsage;
+  }
+  for (int k = 0; k < argc; ++k) a->command += (k > 0 ? " " : "") + std::string(argv[k]);
+  return -1;
+}
+
+// The sampling plan of reduction `plan_index` for `organ`: the boundary nodes of each
+// interaction region that are not held, spread; the loads and the reduction's settings.
+reduce::SamplingPlan MakePlan(const scene::Reduction& r, int plan_index,
+                              const organs::BuiltOrgan& organ, const scene::SceneLines& lines) {
+  reduce::SamplingPlan plan;
+  plan.fixed = organ.fixed_nodes;
+  const somasim::mesh::Points normals = reduce::BoundaryNormals(organ.volume);
+  const std::set<int32_t> held(plan.fixed.begin(), plan.fixed.end());
+  const std::string field = "reduction[" + std::to_string(plan_index) + "]";
+  for (int i = 0; i < r.interaction_size(); ++i) {
+    const std::string where = field + ".interaction[" + std::to_string(i) + "]";
+    std::vector<int32_t> candidates;
+    for (const int32_t n : organs::SelectRegion(r.interaction(i), organ.rest(), where, lines)) {
+      if (held.count(n) == 0 && normals.col(n).squaredNorm() > 0.5) candidates.push_back(n);
+    }
+    if (candidates.empty()) throw lines.Error(where, "holds no free boundary node to load");
+    const std::vector<int32_t> chosen =
+        Spread(candidates, organ.rest(),
+               static_cast<size_t>(r.points_per_region() > 0 ? r.points_per_region() : 6));
+    plan.points.insert(plan.points.end(), chosen.begin(), chosen.end());
+    plan.region_nodes.insert(plan.region_nodes.end(), candidates.begin(), candidates.end());
+  }
+  if (r.force_size() > 0) plan.forces.assign(r.force().begin(), r.force().end());
+  if (r.directions() != 0) plan.directions = r.directions();
+  if (r.creep_duration() > 0.0) plan.creep_duration = r.creep_duration();
+  if (r.creep_interval() > 0.0) plan.creep_interval = r.creep_interval();
+  if (r.energy_fraction() > 0.0) plan.pod.energy_fraction = r.energy_fraction();
+  if (r.max_modes() > 0) plan.pod.max_modes = r.max_modes();
+  if (r.creep_radius() > 0.0) plan.creep_radius = r.creep_radius();
+  plan.nonlinear_pod.energy_fraction = plan.pod.energy_fraction;
+  if (r.nonlinear_max_modes() > 0) plan.nonlinear_pod.max_modes = r.nonlinear_max_modes();
+  plan.energy_inner_product = r.nonlinear_inner_product() == scene::Reduction::ENERGY;
+  plan.petrov_galerkin = r.nonlinear_projection() == scene::Reduction::PETROV_GALERKIN;
+  if (r.cubature_tolerance() > 0.0) {
+    plan.cubature.tolerance = r.cubature_tolerance();
+  } else if (plan.petrov_galerkin) {
+    plan.cubature.tolerance = 0.001;  // what a Petrov–Galerkin model needs (builder.h)
+  }
+  if (r.nonlinear_tilts() > 0) plan.tilts = r.nonlinear_tilts();
+  if (r.nonlinear_tilt_deg() > 0.0) plan.tilt_deg = r.nonlinear_tilt_deg();
+  plan.nonlinear_forces.assign(r.nonlinear_force().begin(), r.nonlinear_force().end());
+  return plan;
+}
+
+// The Karhunen–Loève model's file metadata: what was reduced, how, by which command.
+somasim::reduced::ReducedModelMetadata KlMetadata(const Args& a, const scene::Organ& scene_organ,
+                                                  const organs::BuiltOrgan& organ,
+                                                  const reduce::BuildReport& report) {
+  somasim::reduced::ReducedModelMetadata m;
+  m.set_kind("kl_seed000");
+  m.set_software_version(SOMASIM_VERSION);
+  m.set_command(a.command);
+  m.set_organ(organ.id);
+  m.set_mesh(organ.mesh_name);
+  m.set_mesh_hash(organs::MeshHash(organ.volume));
+  m.set_num_nodes(static_cast<uint64_t>(organ.volume.vertices.cols()));
+  m.set_num_tets(static_cast<uint64_t>(organ.volume.tetrahedra.cols()));
+  m.set_material(scene_organ.model().ShortDebugString() + " " +
+                 scene_organ.material().ShortDebugString());
+  for (const double e : report.eigenvalues) m.add_eigenvalues(e);
+  m.set_kept_fraction(report.kept_fraction);
+  std::string stiffness = "K = " + report.candidates[report.chosen] + "; relative L2 errors:";
+  for (size_t k = 0; k < report.candidates.size(); ++k) {
+    char text[160];
+    std::snprintf(text, sizeof text, " %s %.4f;", report.candidates[k].c_str(),
+                  report.candidate_errors[k]);
+    stiffness += text;
+  }
+  m.set_stiffness(stiffness);
+  m.set_created_unix_ns(std::chrono::duration_cast<std::chrono::nanoseconds>(
+                            std::chrono::system_clock::now().time_since_epoch())
+                            .count());
+  m.set_build_seconds(report.seconds);
+  return m;
+}
+
+// The nonlinear (ECSW) model from the same snapshots, written to `file`; its summary.
+nlohmann::json BuildNonlinear(const std::string& file, const organs::BuiltOrgan& organ,
+                              const reduce::SamplingPlan& plan, const reduce::BuildReport& report,
+                              const somasim::reduced::ReducedModelMetadata& kl,
+                              const std::function<void(const reduce::BuildProgress&)>& progress) {
+  const reduce::NonlinearBuildReport nl =
+      reduce::BuildNonlinearModel(*organ.fem, organ.volume, plan, report, progress);
+  somasim::reduced::ReducedModelMetadata nm = kl;
+  nm.clear_eigenvalues();
+  for (const double e : nl.eigenvalues) nm.add_eigenvalues(e);
+  nm.set_kept_fraction(nl.kept_fraction);
+  nm.set_stiffness(std::string(plan.petrov_galerkin ? "nonlinear, Petrov–Galerkin (Ψ = K0⁻¹ B)"
+                                                    : "nonlinear, Galerkin") +
+                   ": ECSW cubature on " + std::to_string(nl.cubature.elements.size()) +
+                   " elements");
+  nm.set_cubature_residual(nl.cubature.relative_residual);
+  nm.set_build_seconds(report.seconds + nl.seconds);
+  organs::WriteReducedModel(file, nm, nl.data);
+  nlohmann::json j;
+  j["file"] = file;
+  j["modes"] = nl.data.modes.cols();
+  j["snapshots"] = nl.snapshots;
+  j["kept_fraction"] = nl.kept_fraction;
+  j["projection"] = plan.petrov_galerkin ? "petrov_galerkin" : "galerkin";
+  j["cubature_elements"] = nl.cubature.elements.size();
+  j["cubature_residual"] = nl.cubature.relative_residual;
+  j["cubature_converged"] = nl.cubature.converged;
+  j["cubature_states"] = nl.cubature.snapshots;
+  j["cubature_states_inverted"] = nl.cubature.inverted;
+  j["region_nodes"] = plan.region_nodes;
+  j["region_solves"] = nl.region_solves;
+  j["correction_nodes"] = nl.correction_nodes;
+  j["correction_magnitudes"] = nl.data.correction_magnitudes;
+  j["correction_scale_mean"] =
+      std::vector<double>(nl.correction_scale_mean.data(),
+                          nl.correction_scale_mean.data() + nl.correction_scale_mean.size());
+  j["correction_in_modes"] = nl.data.correction_coefficients.size() > 0;
+  j["in_span_error_before"] = nl.in_span_error_before;
+  j["in_span_error_after"] = nl.in_span_error_after;
+  j["region_unconverged"] = nl.unconverged;
+  j["build_seconds"] = nl.seconds;
+  return j;
+}
+
+nlohmann::json KlSummary(const std::string& file, const organs::BuiltOrgan& organ,
+                         const reduce::SamplingPlan& plan, const reduce::BuildReport& report) {
+  nlohmann::json j;
+  j["file"] = file;
+  j["organ"] = organ.id;
+  j["mesh"] = organ.mesh_name;
+  j["nodes"] = organ.volume.vertices.cols();
+  j["points"] = plan.points;
+  j["snapshots"] = report.snapshots;
+  j["unconverged"] = report.unconverged;
+  j["modes"] = report.data.modes.cols();
+  j["kept_fraction"] = report.kept_fraction;
+  std::vector<double> leading;
+  for (Eigen::Index k = 0; k < std::min<Eigen::Index>(report.eigenvalues.size(), 12); ++k) {
+    leading.push_back(report.eigenvalues(k));
+  }
+  j["eigenvalues"] = leading;
+  for (size_t k = 0; k < report.candidates.size(); ++k) {
+    j["stiffness_candidates"].push_back(
+        {{"candidate", report.candidates[k]}, {"l2_error", report.candidate_errors[k]}});
+  }
+  j["stiffness"] = report.candidates[report.chosen];
+  j["creep_curves"] = report.data.creep.size();
+  j["build_seconds"] = report.seconds;
+  return j;
+}
+
+// Builds reduction `plan_index` of the scene: the Karhunen–Loève model (and the nonlinear one)
+// into their files, the summary on stdout.
+int Build(const Args& a, const scene::Scene& s, const scene::SceneLines& lines,
+          const std::string& scene_dir, int plan_index) {
+  for (const std::string& f : {a.out_file, a.nonlinear_file}) {
+    if (!f.empty() && std::filesystem::exists(f)) {
+      std::cerr << "somasim-reduce: " << f << " exists (a reduced model is never overwritten)\n";
+      return kExitIo;
+    }
+  }
+  const scene::Reduction& r = s.reduction(plan_index);
+  int organ_index = 0;
+  while (s.organ(organ_index).id() != r.organ()) ++organ_index;
+  const organs::BuiltOrgan organ = organs::BuildOrgan(s, organ_index, lines, scene_dir);
+  const std::string why = organs::UnheldParts(organ, organ.fixed_nodes);
+  if (!why.empty()) {
+    std::cerr << "somasim-reduce: " << organ.field << ": " << why << "\n";
+    return kExitBadInput;
+  }
+  const reduce::SamplingPlan plan = MakePlan(r, plan_index, organ, lines);
+  std::fprintf(stderr, "somasim-reduce: %s: %zu points, %zu magnitudes, %d directions\n",
+               organ.id.c_str(), plan.points.size(), plan.forces.size(), plan.directions);
+  auto last_print = std::chrono::steady_clock::now() - std::chrono::seconds(10);
+  const auto progress = [&](const reduce::BuildProgress& p) {
+    const auto now = std::chrono::steady_clock::now();
+    if (p.done == p.total || now - last_print > std::chrono::seconds(2)) {
+      std::fprintf(stderr, "somasim-reduce: %s %zu/%zu\n", p.stage.c_str(), p.done, p.total);
+      last_print = now;
+    }
+  };
+  if (!a.nonlinear_file.empty() && organ.fem->kind() != models::fem::FemKind::kHyperelastic) {
+    std::cerr << "somasim-reduce: --nonlinear-out: " << organ.field
+              << " is not fem_hyperelastic (the nonlinear reduced model reduces a hyperelastic "
+                 "organ)\n";
+    return kExitBadInput;
+  }
+  const reduce::BuildReport report = reduce::BuildKlModel(*organ.fem, organ.volume, plan, progress);
+  const somasim::reduced::ReducedModelMetadata m =
+      KlMetadata(a, s.organ(organ_index), organ, report);
+  organs::WriteReducedModel(a.out_file, m, report.data);
+  nlohmann::json j = KlSummary(a.out_file, organ, plan, report);
+  if (!a.nonlinear_file.empty()) {
+    j["nonlinear"] = BuildNonlinear(a.nonlinear_file, organ, plan, report, m, progress);
+  }
+  std::cout << j.dump(2) << "\n";
+  return kExitOk;
+}
+
+int RunMain(int argc, char** argv) {
+  Args a;
+  if (const int rc = ParseArgs(argc, argv, &a); rc >= 0) return rc;
   // CHOLMOD's factorisations are most of the work: the CPU's own BLAS kernels, not the generic
   // ones Debian's OpenBLAS falls back to on CPUs it does not know (common/app/blas_kernels.h;
   // after the command line is parsed: --help and --version need no kernels).
   somasim::app::PreferFastBlasKernels("somasim-reduce", argv);
-  if (evaluate_file.empty() && out_file.empty()) {
-    std::cerr << "somasim-reduce: give --out FILE (build) or --evaluate FILE --plan PLAN\n";
-    return kExitUsage;
-  }
-  if (!evaluate_file.empty() && plan_file.empty()) {
-    std::cerr << "somasim-reduce: --evaluate needs --plan\n";
-    return kExitUsage;
-  }
-  std::string command;
-  for (int k = 0; k < argc; ++k) command += (k > 0 ? " " : "") + std::string(argv[k]);
   try {
     scene::SceneLines lines;
-    const scene::Scene s = scene::LoadSceneFile(scene_arg, &lines);
-    std::string scene_dir = std::filesystem::path(scene_arg).parent_path().string();
+    const scene::Scene s = scene::LoadSceneFile(a.scene, &lines);
+    std::string scene_dir = std::filesystem::path(a.scene).parent_path().string();
     if (scene_dir.empty()) scene_dir = ".";
     int plan_index = -1;
     for (int k = 0; k < s.reduction_size(); ++k) {
-      if (organ_id.empty() || s.reduction(k).organ() == organ_id) {
+      if (a.organ_id.empty() || s.reduction(k).organ() == a.organ_id) {
         plan_index = k;
         break;
       }
     }
-    if (!evaluate_file.empty()) {
+    if (!a.evaluate_file.empty()) {
       return RunEvaluation(
           s, lines, scene_dir,
-          organ_id.empty() && plan_index >= 0 ? s.reduction(plan_index).organ() : organ_id,
-          evaluate_file, plan_file, per_step_file);
+          a.organ_id.empty() && plan_index >= 0 ? s.reduction(plan_index).organ() : a.organ_id,
+          a.evaluate_file, a.plan_file, a.per_step_file);
     }
     if (plan_index < 0) {
-      std::cerr << "somasim-reduce: " << scene_arg << " has no reduction block"
-                << (organ_id.empty() ? "" : " for organ \"" + organ_id + "\"") << "\n";
+      std::cerr << "somasim-reduce: " << a.scene << " has no reduction block"
+                << (a.organ_id.empty() ? "" : " for organ \"" + a.organ_id + "\"") << "\n";
       return kExitBadInput;
     }
-    for (const std::string& f : {out_file, nonlinear_file}) {
-      if (!f.empty() && std::filesystem::exists(f)) {
-        std::cerr << "somasim-reduce: " << f << " exists (a reduced model is never overwritten)\n";
-        return kExitIo;
-      }
-    }
-    const scene::Reduction& r = s.reduction(plan_index);
-    int organ_index = 0;
-    while (s.organ(organ_index).id() != r.organ()) ++organ_index;
-    const somasim::organs::BuiltOrgan organ =
-        somasim::organs::BuildOrgan(s, organ_index, lines, scene_dir);
-    const std::string why = somasim::organs::UnheldParts(organ, organ.fixed_nodes);
-    if (!why.empty()) {
-      std::cerr << "somasim-reduce: " << organ.field << ": " << why << "\n";
-      return kExitBadInput;
-    }
-    // The plan: boundary nodes of each interaction region, not held, spread.
-    reduce::SamplingPlan plan;
-    plan.fixed = organ.fixed_nodes;
-    const somasim::mesh::Points normals = reduce::BoundaryNormals(organ.volume);
-    const std::set<int32_t> held(plan.fixed.begin(), plan.fixed.end());
-    const std::string field = "reduction[" + std::to_string(plan_index) + "]";
-    for (int i = 0; i < r.interaction_size(); ++i) {
-      const std::string where = field + ".interaction[" + std::to_string(i) + "]";
-      std::vector<int32_t> candidates;
-      for (const int32_t n :
-           somasim::organs::SelectRegion(r.interaction(i), organ.rest(), where, lines)) {
-        if (held.count(n) == 0 && normals.col(n).squaredNorm() > 0.5) candidates.push_back(n);
-      }
-      if (candidates.empty()) {
-        throw lines.Error(where, "holds no free boundary node to load");
-      }
-      const std::vector<int32_t> chosen =
-          Spread(candidates, organ.rest(),
-                 static_cast<size_t>(r.points_per_region() > 0 ? r.points_per_region() : 6));
-      plan.points.insert(plan.points.end(), chosen.begin(), chosen.end());
-      plan.region_nodes.insert(plan.region_nodes.end(), candidates.begin(), candidates.end());
-    }
-    if (r.force_size() > 0) plan.forces.assign(r.force().begin(), r.force().end());
-    if (r.directions() != 0) plan.directions = r.directions();
-    if (r.creep_duration() > 0.0) plan.creep_duration = r.creep_duration();
-    if (r.creep_interval() > 0.0) plan.creep_interval = r.creep_interval();
-    if (r.energy_fraction() > 0.0) plan.pod.energy_fraction = r.energy_fraction();
-    if (r.max_modes() > 0) plan.pod.max_modes = r.max_modes();
-    if (r.creep_radius() > 0.0) plan.creep_radius = r.creep_radius();
-    plan.nonlinear_pod.energy_fraction = plan.pod.energy_fraction;
-    if (r.nonlinear_max_modes() > 0) plan.nonlinear_pod.max_modes = r.nonlinear_max_modes();
-    plan.energy_inner_product = r.nonlinear_inner_product() == scene::Reduction::ENERGY;
-    plan.petrov_galerkin = r.nonlinear_projection() == scene::Reduction::PETROV_GALERKIN;
-    if (r.cubature_tolerance() > 0.0) {
-      plan.cubature.tolerance = r.cubature_tolerance();
-    } else if (plan.petrov_galerkin) {
-      plan.cubature.tolerance = 0.001;  // what a Petrov–Galerkin model needs (builder.h)
-    }
-    if (r.nonlinear_tilts() > 0) plan.tilts = r.nonlinear_tilts();
-    if (r.nonlinear_tilt_deg() > 0.0) plan.tilt_deg = r.nonlinear_tilt_deg();
-    plan.nonlinear_forces.assign(r.nonlinear_force().begin(), r.nonlinear_force().end());
-    std::fprintf(stderr, "somasim-reduce: %s: %zu points, %zu magnitudes, %d directions\n",
-                 organ.id.c_str(), plan.points.size(), plan.forces.size(), plan.directions);
-    auto last_print = std::chrono::steady_clock::now() - std::chrono::seconds(10);
-    const auto progress = [&](const reduce::BuildProgress& p) {
-      const auto now = std::chrono::steady_clock::now();
-      if (p.done == p.total || now - last_print > std::chrono::seconds(2)) {
-        std::fprintf(stderr, "somasim-reduce: %s %zu/%zu\n", p.stage.c_str(), p.done, p.total);
-        last_print = now;
-      }
-    };
-    if (!nonlinear_file.empty() && organ.fem->kind() != models::fem::FemKind::kHyperelastic) {
-      std::cerr << "somasim-reduce: --nonlinear-out: " << organ.field
-                << " is not fem_hyperelastic (the nonlinear reduced model reduces a hyperelastic "
-                   "organ)\n";
-      return kExitBadInput;
-    }
-    const reduce::BuildReport report =
-        reduce::BuildKlModel(*organ.fem, organ.volume, plan, progress);
-    // The file.
-    somasim::reduced::ReducedModelMetadata m;
-    m.set_kind("kl_seed000");
-    m.set_software_version(SOMASIM_VERSION);
-    m.set_command(command);
-    m.set_organ(organ.id);
-    m.set_mesh(organ.mesh_name);
-    m.set_mesh_hash(organs::MeshHash(organ.volume));
-    m.set_num_nodes(static_cast<uint64_t>(organ.volume.vertices.cols()));
-    m.set_num_tets(static_cast<uint64_t>(organ.volume.tetrahedra.cols()));
-    m.set_material(s.organ(organ_index).model().ShortDebugString() + " " +
-                   s.organ(organ_index).material().ShortDebugString());
-    for (const double e : report.eigenvalues) m.add_eigenvalues(e);
-    m.set_kept_fraction(report.kept_fraction);
-    std::string stiffness = "K = " + report.candidates[report.chosen] + "; relative L2 errors:";
-    for (size_t k = 0; k < report.candidates.size(); ++k) {
-      char text[160];
-      std::snprintf(text, sizeof text, " %s %.4f;", report.candidates[k].c_str(),
-                    report.candidate_errors[k]);
-      stiffness += text;
-    }
-    m.set_stiffness(stiffness);
-    m.set_created_unix_ns(std::chrono::duration_cast<std::chrono::nanoseconds>(
-                              std::chrono::system_clock::now().time_since_epoch())
-                              .count());
-    m.set_build_seconds(report.seconds);
-    organs::WriteReducedModel(out_file, m, report.data);
-    nlohmann::json nonlinear_summary;
-    if (!nonlinear_file.empty()) {
-      const reduce::NonlinearBuildReport nl =
-          reduce::BuildNonlinearModel(*organ.fem, organ.volume, plan, report, progress);
-      somasim::reduced::ReducedModelMetadata nm = m;
-      nm.clear_eigenvalues();
-      for (const double e : nl.eigenvalues) nm.add_eigenvalues(e);
-      nm.set_kept_fraction(nl.kept_fraction);
-      nm.set_stiffness(std::string(plan.petrov_galerkin ? "nonlinear, Petrov–Galerkin (Ψ = K0⁻¹ B)"
-                                                        : "nonlinear, Galerkin") +
-                       ": ECSW cubature on " + std::to_string(nl.cubature.elements.size()) +
-                       " elements");
-      nm.set_cubature_residual(nl.cubature.relative_residual);
-      nm.set_build_seconds(report.seconds + nl.seconds);
-      organs::WriteReducedModel(nonlinear_file, nm, nl.data);
-      nonlinear_summary["file"] = nonlinear_file;
-      nonlinear_summary["modes"] = nl.data.modes.cols();
-      nonlinear_summary["snapshots"] = nl.snapshots;
-      nonlinear_summary["kept_fraction"] = nl.kept_fraction;
-      nonlinear_summary["projection"] = plan.petrov_galerkin ? "petrov_galerkin" : "galerkin";
-      nonlinear_summary["cubature_elements"] = nl.cubature.elements.size();
-      nonlinear_summary["cubature_residual"] = nl.cubature.relative_residual;
-      nonlinear_summary["cubature_converged"] = nl.cubature.converged;
-      nonlinear_summary["cubature_states"] = nl.cubature.snapshots;
-      nonlinear_summary["cubature_states_inverted"] = nl.cubature.inverted;
-      nonlinear_summary["region_nodes"] = plan.region_nodes;
-      nonlinear_summary["region_solves"] = nl.region_solves;
-      nonlinear_summary["correction_nodes"] = nl.correction_nodes;
-      nonlinear_summary["correction_magnitudes"] = nl.data.correction_magnitudes;
-      nonlinear_summary["correction_scale_mean"] =
-          std::vector<double>(nl.correction_scale_mean.data(),
-                              nl.correction_scale_mean.data() + nl.correction_scale_mean.size());
-      nonlinear_summary["correction_in_modes"] = nl.data.correction_coefficients.size() > 0;
-      nonlinear_summary["in_span_error_before"] = nl.in_span_error_before;
-      nonlinear_summary["in_span_error_after"] = nl.in_span_error_after;
-      nonlinear_summary["region_unconverged"] = nl.unconverged;
-      nonlinear_summary["build_seconds"] = nl.seconds;
-    }
-    // The summary.
-    nlohmann::json j;
-    j["file"] = out_file;
-    j["organ"] = organ.id;
-    j["mesh"] = organ.mesh_name;
-    j["nodes"] = organ.volume.vertices.cols();
-    j["points"] = plan.points;
-    j["snapshots"] = report.snapshots;
-    j["unconverged"] = report.unconverged;
-    j["modes"] = report.data.modes.cols();
-    j["kept_fraction"] = report.kept_fraction;
-    std::vector<double> leading;
-    for (Eigen::Index k = 0; k < std::min<Eigen::Index>(report.eigenvalues.size(), 12); ++k) {
-      leading.push_back(report.eigenvalues(k));
-    }
-    j["eigenvalues"] = leading;
-    for (size_t k = 0; k < report.candidates.size(); ++k) {
-      j["stiffness_candidates"].push_back(
-          {{"candidate", report.candidates[k]}, {"l2_error", report.candidate_errors[k]}});
-    }
-    j["stiffness"] = report.candidates[report.chosen];
-    j["creep_curves"] = report.data.creep.size();
-    j["build_seconds"] = report.seconds;
-    if (!nonlinear_summary.is_null()) j["nonlinear"] = nonlinear_summary;
-    std::cout << j.dump(2) << "\n";
-    return kExitOk;
-  } catch (const scene::SceneError& e) {
-    std::cerr << "somasim-reduce: " << e.what() << "\n";
-    return scene::ExitCodeOf(e);
-  } catch (const somasim::mesh_io::MeshError& e) {
-    std::cerr << "somasim-reduce: " << e.what() << "\n";
-    return somasim::mesh_io::ExitCodeOf(e);
-  } catch (const organs::ReducedFileError& e) {
-    std::cerr << "somasim-reduce: " << e.what() << "\n";
-    return kExitIo;
+    return Build(a, s, lines, scene_dir, plan_index);
+  } catch (const std::runtime_error&) {
+    return organs::ReportFileError("somasim-reduce");
   } catch (const std::invalid_argument& e) {
     std::cerr << "somasim-reduce: " << e.what() << "\n";
     return kExitFailed;

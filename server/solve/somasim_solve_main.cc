@@ -14,6 +14,7 @@
 #include "common/app/blas_kernels.h"
 #include "common/mesh_io/mesh_error.h"
 #include "common/scene/scene.h"
+#include "server/organs/file_errors.h"
 #include "server/solve/solve_runner.h"
 
 #ifndef SOMASIM_VERSION
@@ -73,15 +74,8 @@ int RunMain(int argc, char** argv) {
     const somasim::solve::SolveSummary summary = somasim::solve::RunSolve(scene, lines, options);
     std::cout << somasim::solve::SummaryJson(summary).dump(2) << "\n";
     return summary.converged ? kExitOk : kExitFailed;
-  } catch (const somasim::scene::SceneError& e) {
-    std::cerr << "somasim-solve: " << e.what() << "\n";
-    return somasim::scene::ExitCodeOf(e);
-  } catch (const somasim::mesh_io::MeshError& e) {
-    std::cerr << "somasim-solve: " << e.what() << "\n";
-    return somasim::mesh_io::ExitCodeOf(e);
-  } catch (const std::runtime_error& e) {
-    std::cerr << "somasim-solve: " << e.what() << "\n";
-    return kExitIo;
+  } catch (const std::runtime_error&) {
+    return somasim::organs::ReportFileError("somasim-solve", kExitIo);
   }
 }
 
