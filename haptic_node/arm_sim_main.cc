@@ -81,7 +81,7 @@ int Main(int argc, char** argv) {
   } catch (const CLI::ParseError& e) {
     return cli.exit(e) == 0 ? kExitOk : kExitUsage;
   }
-  if (const std::string bad = arm::ArmNameError(arm_name); !bad.empty()) {
+  if (const std::string bad = arm_shm::ArmNameError(arm_name); !bad.empty()) {
     std::fprintf(stderr, "somasim-arm-sim: --arm \"%s\" %s\n", arm_name.c_str(), bad.c_str());
     return kExitUsage;
   }
@@ -99,10 +99,10 @@ int Main(int argc, char** argv) {
     std::fprintf(stderr, "somasim-arm-sim: --script %s\n", e.what());
     return kExitBadInput;
   }
-  std::unique_ptr<arm::ArmBlock> block;
+  std::unique_ptr<arm_shm::ArmBlock> block;
   try {
-    block = arm::ArmBlock::Create(arm_name, static_cast<uint32_t>(kinematics->num_joints()));
-  } catch (const arm::ArmShmError& e) {
+    block = arm_shm::ArmBlock::Create(arm_name, static_cast<uint32_t>(kinematics->num_joints()));
+  } catch (const arm_shm::ArmShmError& e) {
     std::fprintf(stderr, "somasim-arm-sim: %s\n", e.what());
     return kExitArmBlock;
   }
@@ -166,17 +166,17 @@ int Main(int argc, char** argv) {
         break;
       }
     }
-    const arm::ReadResult read = arm::ReadCommand(block->block().command, &command, 4);
-    if (read == arm::ReadResult::kTorn) ++torn;
+    const arm_shm::ReadResult read = arm_shm::ReadCommand(block->block().command, &command, 4);
+    if (read == arm_shm::ReadResult::kTorn) ++torn;
     const ScriptSample hand = script->At(t);
-    sim.Step(t, dt, read == arm::ReadResult::kOk ? &command : nullptr,
+    sim.Step(t, dt, read == arm_shm::ReadResult::kOk ? &command : nullptr,
              kinematics->PositionToArm(hand.position));
     if (sim.watchdog_tripped() && !was_tripped) {
       ++trips;
       Log(LogLevel::kWarning, "watchdog", {{"monotonic_ns", Ns(now)}, {"t", t}});
     }
     was_tripped = sim.watchdog_tripped();
-    arm::WriteState(&block->block().state,
+    arm_shm::WriteState(&block->block().state,
                     sim.State(++heartbeat, static_cast<uint64_t>(Ns(now)), hand.buttons, hand.jaw));
     if (torques && record.size() < record.capacity()) {
       const ArmPose pose = sim.Pose();

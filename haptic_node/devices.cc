@@ -4,12 +4,12 @@ namespace somasim::haptic {
 
 void ArmDevice::Read(int64_t, HapticLoopInput* in) {
   in->header_problem = block_.HeaderProblem();
-  in->read = arm::ReadState(block_.block().state, &in->state);
+  in->read = arm_shm::ReadState(block_.block().state, &in->state);
   in->tool = 0;
 }
 
 void ArmDevice::Write(const HapticLoopInput& in, const somasim_arm_command_t& command) {
-  if (in.header_problem == nullptr) arm::WriteCommand(&block_.block().command, command);
+  if (in.header_problem == nullptr) arm_shm::WriteCommand(&block_.block().command, command);
 }
 
 void ArmDevice::Stop(uint64_t heartbeat) {
@@ -21,7 +21,7 @@ void ArmDevice::Stop(uint64_t heartbeat) {
                       static_cast<uint64_t>(ts.tv_nsec);
   last.heartbeat = heartbeat;
   last.num_joints = block_.num_joints();
-  if (block_.HeaderProblem() == nullptr) arm::WriteCommand(&block_.block().command, last);
+  if (block_.HeaderProblem() == nullptr) arm_shm::WriteCommand(&block_.block().command, last);
 }
 
 double ScriptDevice::ScriptTime(int64_t now_ns) const {
@@ -41,7 +41,7 @@ void ScriptDevice::Read(int64_t now_ns, HapticLoopInput* in) {
   c.gripper = s.jaw;
   c.buttons = s.buttons;  // the script's bits are the ABI's: clutch, emergency stop, cut
   in->header_problem = nullptr;
-  in->read = arm::ReadResult::kOk;
+  in->read = arm_shm::ReadResult::kOk;
   in->tool = static_cast<uint32_t>(s.tool);
 }
 

@@ -9,6 +9,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <string>
 
 #include "common/arm_shm/arm_shm.h"
 #include "haptic_node/haptic_loop.h"
@@ -28,18 +29,22 @@ class Device {
   virtual void Stop(uint64_t heartbeat) = 0;
   // Whether the device has nothing more to do (a script that ended).
   virtual bool finished(int64_t now_ns) const = 0;
+  // For the log when a fault latches (the wire thread's, not the loop's): what the device's
+  // own checks say of it, e.g. an arm block's header with its values; "" when nothing.
+  virtual std::string FaultDetail() const { return ""; }
 };
 
 class ArmDevice : public Device {
  public:
-  explicit ArmDevice(arm::ArmBlock& block) : block_(block) {}
+  explicit ArmDevice(arm_shm::ArmBlock& block) : block_(block) {}
   void Read(int64_t now_ns, HapticLoopInput* in) override;
   void Write(const HapticLoopInput& in, const somasim_arm_command_t& command) override;
   void Stop(uint64_t heartbeat) override;
   bool finished(int64_t) const override { return false; }
+  std::string FaultDetail() const override { return block_.HeaderError(); }
 
  private:
-  arm::ArmBlock& block_;
+  arm_shm::ArmBlock& block_;
 };
 
 class ScriptDevice : public Device {

@@ -46,7 +46,7 @@ const char* HapticLoop::CheckDevice(const HapticLoopInput& in, bool* have_state)
   *have_state = false;
   if (problem == nullptr) {
     switch (in.read) {
-      case arm::ReadResult::kTorn:
+      case arm_shm::ReadResult::kTorn:
         // A driver preempted mid-write (by this loop, on its core) leaves its record odd for a
         // while: a tick without news. Torn for as long as the heartbeat may be still: the
         // driver died mid-write.
@@ -55,12 +55,12 @@ const char* HapticLoop::CheckDevice(const HapticLoopInput& in, bool* have_state)
           problem = "torn reads of the arm's state (its driver died mid-write?)";
         }
         break;
-      case arm::ReadResult::kNoData:
+      case arm_shm::ReadResult::kNoData:
         if (phase_ == LoopPhase::kRunning) problem = "the arm's state vanished";
         break;
-      case arm::ReadResult::kOk:
+      case arm_shm::ReadResult::kOk:
         torn_streak_ = 0;
-        problem = kinematics_ != nullptr ? arm::StateProblem(in.state, command_.num_joints)
+        problem = kinematics_ != nullptr ? arm_shm::StateProblem(in.state, command_.num_joints)
                                          : CartesianStateProblem(in.cartesian);
         *have_state = problem == nullptr;
         break;
@@ -189,7 +189,7 @@ const somasim_arm_command_t& HapticLoop::Tick(const HapticLoopInput& in) {
   // Silence and a missing or torn state before the device runs are not faults; a bad header or
   // bad values always are.
   const bool device_ok =
-      problem == nullptr || (waiting && (in.read != arm::ReadResult::kOk || have_state));
+      problem == nullptr || (waiting && (in.read != arm_shm::ReadResult::kOk || have_state));
   if (problem != nullptr) ++counters_.bad_states;
 
   command_.node_time_ns = static_cast<uint64_t>(in.now_ns);

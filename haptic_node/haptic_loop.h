@@ -77,9 +77,9 @@ struct HapticLoopSettings {
 
 struct HapticLoopInput {
   int64_t now_ns = 0;  // the node's monotonic clock
-  // An arm: the block's header problem (arm::HeaderProblem, or nullptr), the state read.
+  // An arm: the block's header problem (arm_shm::HeaderProblem, or nullptr), the state read.
   const char* header_problem = nullptr;
-  arm::ReadResult read = arm::ReadResult::kNoData;
+  arm_shm::ReadResult read = arm_shm::ReadResult::kNoData;
   somasim_arm_state_t state{};  // valid when read == kOk
   // A Cartesian device (a loop made without kinematics): its state, read == kOk.
   CartesianState cartesian;

@@ -78,7 +78,7 @@ int RunArm(NodeOptions o, DeviceOptions d, const std::string& config) {
     std::fprintf(stderr, "somasim-haptic: --device shm needs --arm NAME\n");
     return app::kExitUsage;
   }
-  if (const std::string bad = arm::ArmNameError(d.arm); !bad.empty()) {
+  if (const std::string bad = arm_shm::ArmNameError(d.arm); !bad.empty()) {
     std::fprintf(stderr, "somasim-haptic: --arm \"%s\" %s\n", d.arm.c_str(), bad.c_str());
     return app::kExitUsage;
   }
@@ -96,10 +96,10 @@ int RunArm(NodeOptions o, DeviceOptions d, const std::string& config) {
     std::fprintf(stderr, "somasim-haptic: --arm-config %s\n", e.what());
     return app::kExitUsage;
   }
-  std::unique_ptr<arm::ArmBlock> block;
+  std::unique_ptr<arm_shm::ArmBlock> block;
   try {
-    block = arm::ArmBlock::Create(d.arm, static_cast<uint32_t>(kinematics->num_joints()));
-  } catch (const arm::ArmShmError& e) {
+    block = arm_shm::ArmBlock::Create(d.arm, static_cast<uint32_t>(kinematics->num_joints()));
+  } catch (const arm_shm::ArmShmError& e) {
     std::fprintf(stderr, "somasim-haptic: %s\n", e.what());
     return app::kExitArmBlock;
   }

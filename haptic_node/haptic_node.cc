@@ -196,7 +196,8 @@ nlohmann::ordered_json Counters(const LoopStatus& s) {
 // stopping, each fault as it latches and clears, the counters every second.
 class StatusLog {
  public:
-  StatusLog(const NodeOptions& o, const LoopTiming& timing) : o_(o), timing_(timing) {}
+  StatusLog(const NodeOptions& o, const LoopTiming& timing, const Device& device)
+      : o_(o), timing_(timing), device_(device) {}
   void Update(const LoopStatus& s, const Wire& wire) {
     const int64_t t = MonotonicNs();
     if (!fifo_logged_ && s.ticks.load(std::memory_order_relaxed) > 0) {
@@ -216,8 +217,10 @@ class StatusLog {
     if (fault != fault_logged_) {
       fault_logged_ = fault;
       if (fault) {
-        Log(LogLevel::kError, "fault",
-            {{"reason", std::string(s.fault_reason.load())}, {"monotonic_ns", t}});
+        nlohmann::ordered_json f = {{"reason", std::string(s.fault_reason.load())},
+                                    {"monotonic_ns", t}};
+        if (const std::string detail = device_.FaultDetail(); !detail.empty()) f["header"] = detail;
+        Log(LogLevel::kError, "fault", f);
       } else {
         Log(LogLevel::kInfo, "fault_cleared", {{"monotonic_ns", t}});
       }
@@ -234,6 +237,7 @@ class StatusLog {
  private:
   const NodeOptions& o_;
   const LoopTiming& timing_;
+  const Device& device_;
   bool fifo_logged_ = false;
   bool running_logged_ = false;
   bool fault_logged_ = false;
@@ -353,7 +357,7 @@ int RunNode(const NodeOptions& o, Device& device, HapticLoop& loop, const std::s
   } stop_loop{*shared, loop_thread};
 
   const int64_t start = MonotonicNs();
-  StatusLog status_log(o, *timing);
+  StatusLog status_log(o, *timing, device);
   bool lost = false;
   while (!app::StopRequested()) {
     if (o.duration > 0.0 && 1e-9 * static_cast<double>(MonotonicNs() - start) >= o.duration) break;

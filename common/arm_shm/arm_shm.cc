@@ -11,7 +11,7 @@
 #include <cstring>
 #include <thread>
 
-namespace somasim::arm {
+namespace somasim::arm_shm {
 
 namespace {
 
@@ -118,8 +118,8 @@ ArmBlock::ArmBlock(std::string object, somasim_arm_block_t* block, uint64_t byte
 
 ArmBlock::~ArmBlock() { munmap(block_, bytes_); }
 
-std::string ArmBlock::HeaderError() const { return arm::HeaderError(*block_, bytes_); }
-const char* ArmBlock::HeaderProblem() const { return arm::HeaderProblem(*block_, bytes_); }
+std::string ArmBlock::HeaderError() const { return arm_shm::HeaderError(*block_, bytes_); }
+const char* ArmBlock::HeaderProblem() const { return arm_shm::HeaderProblem(*block_, bytes_); }
 
 std::unique_ptr<ArmBlock> ArmBlock::Create(std::string_view name, uint32_t num_joints) {
   if (const std::string bad = ArmNameError(name); !bad.empty()) {
@@ -191,7 +191,7 @@ std::unique_ptr<ArmBlock> ArmBlock::Open(std::string_view name, int wait_ms) {
   if (bytes < sizeof(somasim_arm_block_t)) {
     close(fd);
     throw ArmShmError(object + ": " +
-                      arm::HeaderError(somasim_arm_block_t{}, bytes));  // names the size
+                      arm_shm::HeaderError(somasim_arm_block_t{}, bytes));  // names the size
   }
   void* p = mmap(nullptr, bytes, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
   close(fd);
@@ -272,4 +272,4 @@ std::string StateError(const somasim_arm_state_t& s, uint32_t num_joints) {
   return "";
 }
 
-}  // namespace somasim::arm
+}  // namespace somasim::arm_shm

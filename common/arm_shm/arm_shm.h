@@ -12,7 +12,7 @@
 
 #include "common/arm_shm/arm_abi.h"
 
-namespace somasim::arm {
+namespace somasim::arm_shm {
 
 // A block that cannot be made or used; what() names the object and what is wrong.
 class ArmShmError : public std::runtime_error {
@@ -87,4 +87,4 @@ std::string StateError(const somasim_arm_state_t& state, uint32_t num_joints);
 // The same checks, allocation-free: nullptr when usable, else which check failed (static).
 const char* StateProblem(const somasim_arm_state_t& state, uint32_t num_joints);
 
-}  // namespace somasim::arm
+}  // namespace somasim::arm_shm

@@ -44,8 +44,8 @@ void Percentiles(benchmark::State& state, std::vector<double>* ns) {
 
 void BM_HapticShmHandoff(benchmark::State& state) {
   const std::string name = "bench-" + std::to_string(getpid());
-  arm::ArmBlock::Unlink(name);
-  auto block = arm::ArmBlock::Create(name, 6);
+  arm_shm::ArmBlock::Unlink(name);
+  auto block = arm_shm::ArmBlock::Create(name, 6);
   somasim_arm_command_t out{}, in{};
   out.enable = 1;
   out.num_joints = 6;
@@ -54,8 +54,8 @@ void BM_HapticShmHandoff(benchmark::State& state) {
   for (auto _ : state) {
     const Clock::time_point t0 = Clock::now();
     ++out.heartbeat;
-    arm::WriteCommand(&block->block().command, out);
-    const arm::ReadResult r = arm::ReadCommand(block->block().command, &in);
+    arm_shm::WriteCommand(&block->block().command, out);
+    const arm_shm::ReadResult r = arm_shm::ReadCommand(block->block().command, &in);
     const Clock::time_point t1 = Clock::now();
     benchmark::DoNotOptimize(r);
     benchmark::DoNotOptimize(in.heartbeat);
@@ -65,7 +65,7 @@ void BM_HapticShmHandoff(benchmark::State& state) {
     }
   }
   Percentiles(state, &ns);
-  arm::ArmBlock::Unlink(name);
+  arm_shm::ArmBlock::Unlink(name);
 }
 BENCHMARK(BM_HapticShmHandoff);
 
@@ -75,8 +75,8 @@ BENCHMARK(BM_HapticShmHandoff);
 // hand-offs; one iteration = one hand-off received.
 void BM_HapticShmHandoffOneWay(benchmark::State& state) {
   const std::string name = "bench-ow-" + std::to_string(getpid());
-  arm::ArmBlock::Unlink(name);
-  auto block = arm::ArmBlock::Create(name, 6);
+  arm_shm::ArmBlock::Unlink(name);
+  auto block = arm_shm::ArmBlock::Create(name, 6);
   std::atomic<bool> stop{false};
   std::thread writer([&] {
     somasim_arm_command_t out{};
@@ -87,7 +87,7 @@ void BM_HapticShmHandoffOneWay(benchmark::State& state) {
       out.node_time_ns = static_cast<uint64_t>(
           std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now().time_since_epoch())
               .count());
-      arm::WriteCommand(&block->block().command, out);
+      arm_shm::WriteCommand(&block->block().command, out);
       const Clock::time_point until = Clock::now() + std::chrono::microseconds(20);
       while (Clock::now() < until) {
       }
@@ -99,7 +99,7 @@ void BM_HapticShmHandoffOneWay(benchmark::State& state) {
   somasim_arm_command_t in{};
   for (auto _ : state) {
     for (;;) {
-      if (arm::ReadCommand(block->block().command, &in) == arm::ReadResult::kOk &&
+      if (arm_shm::ReadCommand(block->block().command, &in) == arm_shm::ReadResult::kOk &&
           in.heartbeat != last) {
         break;
       }
@@ -117,15 +117,15 @@ void BM_HapticShmHandoffOneWay(benchmark::State& state) {
   stop = true;
   writer.join();
   Percentiles(state, &ns);
-  arm::ArmBlock::Unlink(name);
+  arm_shm::ArmBlock::Unlink(name);
 }
 BENCHMARK(BM_HapticShmHandoffOneWay)->Iterations(200000);
 
 void BM_HapticTickCompute(benchmark::State& state) {
   const ArmKinematics k = ArmKinematics::Load(std::string(SOMASIM_ARMS_DIR) + "/seed002.arm.txtpb");
   const std::string name = "bench-tick-" + std::to_string(getpid());
-  arm::ArmBlock::Unlink(name);
-  auto block = arm::ArmBlock::Create(name, 6);
+  arm_shm::ArmBlock::Unlink(name);
+  auto block = arm_shm::ArmBlock::Create(name, 6);
   HapticLoopSettings settings;
   settings.output.max_force = k.max_force();
   HapticLoop loop(k, settings);
@@ -135,17 +135,17 @@ void BM_HapticTickCompute(benchmark::State& state) {
   int64_t now = 1'000'000'000;
   const auto tick = [&] {
     ++s.heartbeat;
-    arm::WriteState(&block->block().state, s);  // the driver's part, outside the timing below
+    arm_shm::WriteState(&block->block().state, s);  // the driver's part, outside the timing below
     now += 1'000'000;
     HapticLoopInput in;
     in.now_ns = now;
     in.header_problem = block->HeaderProblem();
-    in.read = arm::ReadState(block->block().state, &in.state);
+    in.read = arm_shm::ReadState(block->block().state, &in.state);
     ReceivedForceModel model;
     uint64_t version = 0;
     const bool have = slot.Read(&model, &version) && version > 0;
     in.model = have ? &model : nullptr;
-    arm::WriteCommand(&block->block().command, loop.Tick(in));
+    arm_shm::WriteCommand(&block->block().command, loop.Tick(in));
   };
   // A probe pressing 2 mm into a surface through the arm's home pose, engaged.
   const ArmPose home = k.ToScene(k.Forward(k.JointsFromEncoders(s.joint)));
@@ -166,19 +166,19 @@ void BM_HapticTickCompute(benchmark::State& state) {
   ns.reserve(1 << 20);
   for (auto _ : state) {
     ++s.heartbeat;
-    arm::WriteState(&block->block().state, s);
+    arm_shm::WriteState(&block->block().state, s);
     slot.Write({m, now});
     now += 1'000'000;
     const Clock::time_point t0 = Clock::now();
     HapticLoopInput in;
     in.now_ns = now;
     in.header_problem = block->HeaderProblem();
-    in.read = arm::ReadState(block->block().state, &in.state);
+    in.read = arm_shm::ReadState(block->block().state, &in.state);
     ReceivedForceModel model;
     uint64_t version = 0;
     const bool have = slot.Read(&model, &version) && version > 0;
     in.model = have ? &model : nullptr;
-    arm::WriteCommand(&block->block().command, loop.Tick(in));
+    arm_shm::WriteCommand(&block->block().command, loop.Tick(in));
     const Clock::time_point t1 = Clock::now();
     if (ns.size() < ns.capacity()) {
       ns.push_back(static_cast<double>(
@@ -187,7 +187,7 @@ void BM_HapticTickCompute(benchmark::State& state) {
   }
   state.counters["force_n"] = loop.arm_force().norm();  // 1.2 N: the press was rendered
   Percentiles(state, &ns);
-  arm::ArmBlock::Unlink(name);
+  arm_shm::ArmBlock::Unlink(name);
 }
 BENCHMARK(BM_HapticTickCompute);
 

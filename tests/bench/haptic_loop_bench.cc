@@ -152,7 +152,7 @@ void BM_HapticLoopPeriod(benchmark::State& state) {
     sim.Wait(std::chrono::seconds(10));
     server.Signal(SIGTERM);
     server.Wait(std::chrono::seconds(10));
-    arm::ArmBlock::Unlink(arm);
+    arm_shm::ArmBlock::Unlink(arm);
     nlohmann::json r;
     try {
       r = nlohmann::json::parse(bench::ReadText(dir + "/node.json"));

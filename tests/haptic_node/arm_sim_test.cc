@@ -176,11 +176,11 @@ int64_t NowNs() {
 }
 
 // The block somasim-arm-sim makes, once it has made it (3 s at most; nullptr if it never does).
-std::unique_ptr<arm::ArmBlock> AttachWhenMade(const std::string& name) {
+std::unique_ptr<arm_shm::ArmBlock> AttachWhenMade(const std::string& name) {
   for (int i = 0; i < 300; ++i) {
     try {
-      return arm::ArmBlock::Open(name, 100);
-    } catch (const arm::ArmShmError&) {
+      return arm_shm::ArmBlock::Open(name, 100);
+    } catch (const arm_shm::ArmShmError&) {
       std::this_thread::sleep_for(milliseconds(10));
     }
   }
@@ -195,24 +195,24 @@ TEST(ArmSimProgram, TorqueGoesToZeroWithin20MillisecondsOfTheNodesLastWrite) {
   if (somasim::testing::kUnderSanitizer) GTEST_SKIP() << "a latency bound";
   const std::string dir = testing::TempDir("armsim");
   const std::string name = "test-" + std::to_string(getpid());
-  arm::ArmBlock::Unlink(name);
+  arm_shm::ArmBlock::Unlink(name);
   std::ofstream(dir + "/hold.txt") << "somasim-script 1\ntool probe\nkey 0 -0.03 0 0.10\n";
   auto sim = testing::StartProgram("somasim-arm-sim",
                                    {"--arm", name, "--config", kArm, "--script", dir + "/hold.txt",
                                     "--duration", "4", "--torques", dir + "/torques.csv"},
                                    dir + "/sim.log");
-  std::unique_ptr<arm::ArmBlock> block = AttachWhenMade(name);
+  std::unique_ptr<arm_shm::ArmBlock> block = AttachWhenMade(name);
   ASSERT_TRUE(block) << testing::ReadText(dir + "/sim.log");
   somasim_arm_state_t state{};
-  for (int i = 0; i < 300 && arm::ReadState(block->block().state, &state) != arm::ReadResult::kOk;
+  for (int i = 0; i < 300 && arm_shm::ReadState(block->block().state, &state) != arm_shm::ReadResult::kOk;
        ++i) {
     std::this_thread::sleep_for(milliseconds(1));
   }
-  EXPECT_EQ(arm::StateError(state, 6), "");
+  EXPECT_EQ(arm_shm::StateError(state, 6), "");
   auto next = std::chrono::steady_clock::now();
   int64_t stopped = 0;                             // the node's last write
   for (uint64_t beat = 1; beat <= 1000; ++beat) {  // 1 s at 1 kHz
-    arm::WriteCommand(&block->block().command, Command(beat, 0.2));
+    arm_shm::WriteCommand(&block->block().command, Command(beat, 0.2));
     stopped = NowNs();
     next += milliseconds(1);
     std::this_thread::sleep_until(next);
@@ -238,24 +238,24 @@ TEST(ArmSimProgram, TorqueGoesToZeroWithin20MillisecondsOfTheNodesLastWrite) {
   std::printf("torque zero %.1f ms after the node's last write\n",
               1e-6 * static_cast<double>(zero_at - stopped));
   EXPECT_LT(zero_at - stopped, 20'000'000);
-  arm::ArmBlock::Unlink(name);
+  arm_shm::ArmBlock::Unlink(name);
 }
 
 TEST(ArmSimProgram, StopsOnACorruptedHeaderAndRefusesBadCommandLines) {
   const std::string dir = testing::TempDir("armsim-bad");
   const std::string name = "bad-" + std::to_string(getpid());
-  arm::ArmBlock::Unlink(name);
+  arm_shm::ArmBlock::Unlink(name);
   std::ofstream(dir + "/hold.txt") << "somasim-script 1\ntool probe\nkey 0 -0.03 0 0.10\n";
   auto sim = testing::StartProgram(
       "somasim-arm-sim",
       {"--arm", name, "--config", kArm, "--script", dir + "/hold.txt", "--duration", "20"},
       dir + "/sim.log");
-  std::unique_ptr<arm::ArmBlock> block = AttachWhenMade(name);
+  std::unique_ptr<arm_shm::ArmBlock> block = AttachWhenMade(name);
   ASSERT_TRUE(block);
   block->block().abi_version = 7;
   EXPECT_EQ(sim->Wait(seconds(10)), 8) << testing::ReadText(dir + "/sim.log");
   EXPECT_NE(testing::ReadText(dir + "/sim.log").find("abi_version is 7"), std::string::npos);
-  arm::ArmBlock::Unlink(name);
+  arm_shm::ArmBlock::Unlink(name);
   const auto run = [&](const std::vector<std::string>& args, const std::string& log) {
     auto p = testing::StartProgram("somasim-arm-sim", args, dir + "/" + log);
     const int rc = p->Wait(seconds(10));

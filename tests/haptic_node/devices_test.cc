@@ -176,7 +176,7 @@ TEST(LoopThread, TicksTheDeviceWithoutAllocatingAndHandsThePoseAndForcesOver) {
   close(shared->wake_fd);
   while (shared->forces.Pop(&record)) ++rows;
   const uint64_t ticks = shared->status.ticks.load();
-  EXPECT_GT(ticks, testing::kUnderSanitizer ? 20u : 200u);
+  EXPECT_GT(ticks, 20u);  // about 400 on a quiet machine; no timing is asserted here
   EXPECT_EQ(rows + shared->status.forces_dropped.load(), ticks);
   EXPECT_EQ(allocations, 0);
   ToolPoseSample pose;

@@ -88,7 +88,7 @@ class Bench {
   ArmKinematics k_;
   HapticLoop loop_;
   somasim_arm_state_t state_{};
-  arm::ReadResult read_ = arm::ReadResult::kOk;
+  arm_shm::ReadResult read_ = arm_shm::ReadResult::kOk;
   const char* header_problem_ = nullptr;
   bool driver_alive_ = true;
   ReceivedForceModel model_;
@@ -99,14 +99,14 @@ class Bench {
 
 TEST(HapticLoop, WaitsForTheDriverWithoutAFaultThenFollowsTheArm) {
   Bench b;
-  b.read_ = arm::ReadResult::kNoData;
+  b.read_ = arm_shm::ReadResult::kNoData;
   b.Ticks(50);
   EXPECT_EQ(b.loop_.phase(), LoopPhase::kWaitingForArm);
   EXPECT_FALSE(b.loop_.fault());
   EXPECT_EQ(b.Tick().enable, 0u);
   EXPECT_EQ(b.loop_.tool().valid, 0u);
   // A driver's state that does not move yet (a driver from an earlier run, gone): still waiting.
-  b.read_ = arm::ReadResult::kOk;
+  b.read_ = arm_shm::ReadResult::kOk;
   b.driver_alive_ = false;
   b.Ticks(50);
   EXPECT_EQ(b.loop_.phase(), LoopPhase::kWaitingForArm);
@@ -170,7 +170,7 @@ TEST(HapticLoop, TornReadsBadStatesAndABadHeaderLatchAFault) {
   const Case cases[] = {
       {"torn",
        [](Bench* b) {
-         b->read_ = arm::ReadResult::kTorn;
+         b->read_ = arm_shm::ReadResult::kTorn;
          b->Ticks(10);  // a driver preempted mid-write: ticks without news, no fault yet
          EXPECT_FALSE(b->loop_.fault());
        },
@@ -181,7 +181,7 @@ TEST(HapticLoop, TornReadsBadStatesAndABadHeaderLatchAFault) {
       {"gripper", [](Bench* b) { b->state_.gripper = 3.0; }, "a bad gripper value"},
       {"buttons", [](Bench* b) { b->state_.buttons = 0x100; }, "unknown button bits"},
       {"header", [](Bench* b) { b->header_problem_ = "bad magic"; }, "bad magic"},
-      {"vanished", [](Bench* b) { b->read_ = arm::ReadResult::kNoData; }, "vanished"},
+      {"vanished", [](Bench* b) { b->read_ = arm_shm::ReadResult::kNoData; }, "vanished"},
   };
   for (const Case& c : cases) {
     Bench b;
@@ -355,7 +355,7 @@ TEST(HapticLoop, TicksAllocateNothing) {
     b.state_.buttons = (i / 500) % 2 == 1 ? SOMASIM_ARM_BUTTON_CLUTCH : 0u;
     b.Tick();
   }
-  b.read_ = arm::ReadResult::kTorn;
+  b.read_ = arm_shm::ReadResult::kTorn;
   b.Tick();
   EXPECT_EQ(counter.count(), 0);
 }

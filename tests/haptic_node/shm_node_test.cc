@@ -95,7 +95,7 @@ class Station {
         arm_("t" + std::to_string(getpid()) + "-" + std::to_string(domain)),
         session_(test),
         domain_(std::to_string(domain)) {
-    arm::ArmBlock::Unlink(arm_);
+    arm_shm::ArmBlock::Unlink(arm_);
     server_ = testing::StartProgram(
         "somasim-server",
         {"--scene", kData + "/kidney_press.scene.txtpb", "--session", session_, "--domain", domain_,
@@ -113,7 +113,7 @@ class Station {
     if (sim_) sim_->Signal(SIGKILL);
     if (node_) node_->Signal(SIGKILL);
     if (server_) server_->Signal(SIGKILL);
-    arm::ArmBlock::Unlink(arm_);
+    arm_shm::ArmBlock::Unlink(arm_);
   }
 
   // Waits for the server's session, then starts the arm simulator (its hand presses from 2 s).
@@ -130,8 +130,8 @@ class Station {
         dir_ + "/arm.log");
     for (int i = 0; i < 300 && !block_; ++i) {
       try {
-        block_ = arm::ArmBlock::Open(arm_, 100);
-      } catch (const arm::ArmShmError&) {
+        block_ = arm_shm::ArmBlock::Open(arm_, 100);
+      } catch (const arm_shm::ArmShmError&) {
         std::this_thread::sleep_for(milliseconds(10));
       }
     }
@@ -141,7 +141,7 @@ class Station {
   // The node's commanded force [N] as the arm reads it now (0 when disabled or unreadable).
   double CommandedForce() const {
     somasim_arm_command_t c{};
-    if (arm::ReadCommand(block_->block().command, &c) != arm::ReadResult::kOk) return 0.0;
+    if (arm_shm::ReadCommand(block_->block().command, &c) != arm_shm::ReadResult::kOk) return 0.0;
     if (c.enable == 0) return 0.0;
     return std::sqrt(c.force[0] * c.force[0] + c.force[1] * c.force[1] + c.force[2] * c.force[2]);
   }
@@ -187,7 +187,7 @@ class Station {
   std::unique_ptr<app::ChildProcess> server_;
   std::unique_ptr<app::ChildProcess> node_;
   std::unique_ptr<app::ChildProcess> sim_;
-  std::unique_ptr<arm::ArmBlock> block_;
+  std::unique_ptr<arm_shm::ArmBlock> block_;
 };
 
 TEST(ShmNode, DrivesTheArmSimulatorAgainstTheServer) {
@@ -321,16 +321,16 @@ TEST(ShmNode, ACorruptedHeaderLatchesAFaultNamingItAndStopsCommanding) {
   ASSERT_TRUE(s.StartArm()) << s.Explain();
   ASSERT_TRUE(s.WaitForPress(0.2)) << s.Explain();
   somasim_arm_command_t before{};
-  ASSERT_EQ(arm::ReadCommand(s.block_->block().command, &before), arm::ReadResult::kOk);
+  ASSERT_EQ(arm_shm::ReadCommand(s.block_->block().command, &before), arm_shm::ReadResult::kOk);
   s.block_->block().magic = 0x12345678;
   const Clock::time_point corrupted = Clock::now();
   // The node notices at its next tick and writes no more commands.
   std::this_thread::sleep_for(milliseconds(50));
   somasim_arm_command_t after{};
-  ASSERT_EQ(arm::ReadCommand(s.block_->block().command, &after), arm::ReadResult::kOk);
+  ASSERT_EQ(arm_shm::ReadCommand(s.block_->block().command, &after), arm_shm::ReadResult::kOk);
   std::this_thread::sleep_for(milliseconds(50));
   somasim_arm_command_t later{};
-  ASSERT_EQ(arm::ReadCommand(s.block_->block().command, &later), arm::ReadResult::kOk);
+  ASSERT_EQ(arm_shm::ReadCommand(s.block_->block().command, &later), arm_shm::ReadResult::kOk);
   EXPECT_EQ(after.heartbeat, later.heartbeat) << "the node still commands a corrupted block";
   // The driver (which checks the header every 100 ms) stops too: exit 8.
   EXPECT_EQ(s.sim_->Wait(seconds(5)), 8) << s.Explain();

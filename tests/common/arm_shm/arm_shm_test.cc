@@ -19,7 +19,7 @@
 
 #include "tests/support/sanitizer.h"
 
-namespace somasim::arm {
+namespace somasim::arm_shm {
 namespace {
 
 // A name no other test (or run) uses; the object is removed when the test ends.
@@ -253,4 +253,4 @@ TEST(ArmShm, StateErrorNamesWhatIsWrong) {
 }
 
 }  // namespace
-}  // namespace somasim::arm
+}  // namespace somasim::arm_shm
