@@ -2,9 +2,9 @@
 // somasim-reduce).
 //
 // Debian 12's OpenBLAS (0.3.21, one library with kernels for many CPUs, chosen when it loads)
-// does not recognise some newer CPUs — this project's CI machine, a Sapphire Rapids VM, among
-// them — and falls back to its Prescott (SSE3) kernels: CHOLMOD's supernodal factorisations then
-// run 1.5–3× slower than with the AVX2 or AVX-512 kernels the CPU can run. OpenBLAS reads
+// does not recognise some newer CPUs and falls back to its Prescott (SSE3) kernels: CHOLMOD's
+// supernodal factorisations then run several times slower than with the AVX2 or AVX-512 kernels
+// the CPU can run (docs/benchmarks.md has the figures). OpenBLAS reads
 // OPENBLAS_CORETYPE once, as it loads, so a program can only choose better kernels by setting it
 // and executing itself again, before it has done anything else.
 #pragma once

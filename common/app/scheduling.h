@@ -5,10 +5,10 @@
 // Since Linux 6.12 the EEVDF scheduler takes a per-thread slice request: sched_setattr with
 // SCHED_OTHER and sched_runtime = the slice, 0.1–100 ms, no privilege needed. A shorter slice
 // gives a woken thread an earlier virtual deadline, so it preempts a CPU-bound thread (the
-// physics) instead of waiting out that thread's slice. Measured on the 2-core VM with the server's
-// gallbladder5400 physics busy on one core: frame latency p99 2.3–3.7 ms with the default slice,
-// 0.46–0.60 ms with a 100 µs slice for the subscriber (docs/benchmarks.md). Threads the calling
-// thread creates afterwards inherit the request (Cyclone's receive threads among them).
+// physics) instead of waiting out that thread's slice: next to a busy physics thread the frame
+// latency's tail shrinks several times (docs/benchmarks.md, BM_FrameLatency against
+// BM_FrameLatencyDefaultSlice). Threads the calling thread creates afterwards inherit the
+// request (Cyclone's receive threads among them).
 //
 // Older kernels accept the call and ignore the slice: the result then says it was not applied,
 // read back with sched_getattr, and the caller logs it. Nothing here fails the process.
@@ -29,7 +29,7 @@ struct SliceResult {
 SliceResult SetSchedulerSlice(std::chrono::microseconds slice);
 
 // The calling thread's slice [µs] as the kernel reports it: its request, else the kernel's base
-// slice (1400 µs on the 2-core VM); 0 on kernels before 6.12; -1 when it cannot be read.
+// slice; 0 on kernels before 6.12; -1 when it cannot be read.
 long long SchedulerSliceUs();
 
 // The slice the wire's waiting threads ask for.

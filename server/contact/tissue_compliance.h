@@ -14,10 +14,8 @@
 // volume-weighted mean deformation gradient (corotational and hyperelastic organs; identity for
 // linear ones). K0 is the instantaneous (elastic, G(0) = 1) stiffness of a QLV organ. Small
 // strain: at large strain the hyperelastic tangent stiffens and C0 overestimates the compliance
-// (documented, not hidden). Measured on kidney424 (held on its lowest 10 %), 0.2 mm at surface
-// nodes: linear 6e-8, corotational 2 % (also after a 2.1 rad rigid turn), neo-Hookean and
-// liver_nava2008 2.6 % from the full static solve. liver4055 (1448 surface nodes): factorise
-// ~0.4-0.8 s, precompute every surface node ~1-2 s, AtNode ~0.4 µs.
+// (documented, not hidden; docs/contact.md gives the errors against the full static solve and
+// the costs).
 // Other models (mass-spring, molecular, position-based): their own LocalStiffness, inverted —
 // the stiffness the node has against its neighbours this step.
 #pragma once
