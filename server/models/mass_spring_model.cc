@@ -60,6 +60,7 @@
 #include <utility>
 #include <vector>
 
+#include "common/checks/finite.h"
 #include "server/models/cpu_features.h"
 #include "server/models/generalised_surface.h"
 #include "server/models/mass_spring_state.h"
@@ -577,34 +578,28 @@ void MergeNearlyEqual(std::vector<double>* values) {
 void CheckParameters(const MassSpringParameters& p) {
   const auto positive_or_raw = [](double physical, double raw, const char* what) {
     if (raw > 0.0) return;
-    if (!(physical > 0.0) || !std::isfinite(physical)) {
+    if (!checks::FinitePositive(physical)) {
       throw std::invalid_argument(std::string("mass-spring: ") + what +
                                   " must be a finite value > 0");
     }
   };
   positive_or_raw(p.youngs_modulus, p.spring_stiffness, "youngs_modulus [Pa]");
   positive_or_raw(p.density, p.node_mass, "density [kg/m^3]");
-  if (!(p.damping_ratio >= 0.0) || !std::isfinite(p.damping_ratio)) {
+  if (!checks::FiniteNonNegative(p.damping_ratio)) {
     throw std::invalid_argument("mass-spring: damping_ratio must be a finite value >= 0");
   }
-  if (!(p.thickness > 0.0) || !std::isfinite(p.thickness)) {
+  if (!checks::FinitePositive(p.thickness)) {
     throw std::invalid_argument("mass-spring: thickness [m] must be a finite value > 0");
   }
-  if (!(p.spring_stiffness >= 0.0) || !std::isfinite(p.spring_stiffness)) {
-    throw std::invalid_argument("mass-spring: spring_stiffness [N/m] must be finite and >= 0");
-  }
-  if (!(p.node_mass >= 0.0) || !std::isfinite(p.node_mass)) {
-    throw std::invalid_argument("mass-spring: node_mass [kg] must be finite and >= 0");
-  }
+  checks::RequireFiniteNonNegative("mass-spring", "spring_stiffness [N/m]", p.spring_stiffness);
+  checks::RequireFiniteNonNegative("mass-spring", "node_mass [kg]", p.node_mass);
   if (!(p.cg_tolerance > 0.0) || !(p.cg_max_iterations > 0)) {
     throw std::invalid_argument("mass-spring: cg_tolerance and cg_max_iterations must be > 0");
   }
   if (!(p.speed_limit > 0.0)) {
     throw std::invalid_argument("mass-spring: speed_limit [m/s] must be > 0");
   }
-  if (!(p.anchor_stiffness >= 0.0) || !std::isfinite(p.anchor_stiffness)) {
-    throw std::invalid_argument("mass-spring: anchor_stiffness [N/m] must be finite and >= 0");
-  }
+  checks::RequireFiniteNonNegative("mass-spring", "anchor_stiffness [N/m]", p.anchor_stiffness);
 }
 
 }  // namespace

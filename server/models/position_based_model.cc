@@ -13,6 +13,7 @@
 #include <utility>
 #include <vector>
 
+#include "common/checks/finite.h"
 #include "common/mesh/geometry.h"
 #include "common/mesh/topology.h"
 #include "server/models/cpu_features.h"
@@ -373,25 +374,17 @@ void CheckParameters(const PositionBasedParameters& p) {
   }
   if (!(p.iterations >= 1)) Refuse("iterations must be >= 1");
   if (!(p.stiffness > 0.0 && p.stiffness <= 1.0)) Refuse("stiffness k must lie in (0, 1]");
-  if (!(p.compliance >= 0.0) || !std::isfinite(p.compliance)) {
-    Refuse("compliance [m/N] must be finite and >= 0");
-  }
+  checks::RequireFiniteNonNegative("position-based", "compliance [m/N]", p.compliance);
   if (p.mode == PositionBasedMode::kXpbd && !(p.compliance > 0.0) &&
-      (!(p.youngs_modulus > 0.0) || !std::isfinite(p.youngs_modulus))) {
+      !checks::FinitePositive(p.youngs_modulus)) {
     Refuse("youngs_modulus [Pa] must be a finite value > 0 (or give compliance > 0)");
   }
-  if (!(p.node_mass >= 0.0) || !std::isfinite(p.node_mass)) {
-    Refuse("node_mass [kg] must be finite and >= 0");
-  }
-  if (!(p.node_mass > 0.0) && (!(p.density > 0.0) || !std::isfinite(p.density))) {
+  checks::RequireFiniteNonNegative("position-based", "node_mass [kg]", p.node_mass);
+  if (!(p.node_mass > 0.0) && !checks::FinitePositive(p.density)) {
     Refuse("density [kg/m^3] must be a finite value > 0 (or give node_mass > 0)");
   }
-  if (!(p.thickness > 0.0) || !std::isfinite(p.thickness)) {
-    Refuse("thickness [m] must be a finite value > 0");
-  }
-  if (!(p.tolerance >= 0.0) || !std::isfinite(p.tolerance)) {
-    Refuse("tolerance must be finite and >= 0");
-  }
+  if (!checks::FinitePositive(p.thickness)) Refuse("thickness [m] must be a finite value > 0");
+  checks::RequireFiniteNonNegative("position-based", "tolerance", p.tolerance);
   if (!(p.speed_limit > 0.0)) Refuse("speed_limit [m/s] must be > 0");
 }
 
@@ -492,7 +485,7 @@ void PositionBasedModel::Build(const mesh::Points& rest,
       // Van Gelder 1998: k_e = E Σ size / |e|²; compliance = 1/k_e.
       const double k = p.compliance > 0.0 ? 1.0 / p.compliance
                                           : p.youngs_modulus * edge_size_sum[e] / (length * length);
-      if (!(k > 0.0) || !std::isfinite(k)) {
+      if (!checks::FinitePositive(k)) {
         Refuse("constraint " + std::to_string(e) + " (nodes " + std::to_string(i) + ", " +
                std::to_string(j) + ") gets no stiffness from the material");
       }
