@@ -64,6 +64,7 @@
 #include "server/models/cpu_features.h"
 #include "server/models/generalised_surface.h"
 #include "server/models/mass_spring_state.h"
+#include "server/models/particle_edges.h"
 #include "server/models/particle_mesh.h"
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -652,19 +653,9 @@ std::unique_ptr<MassSpringModel> MassSpringModel::FromEdges(
         "mass-spring: springs given as edges need spring_stiffness and node_mass > 0");
   }
   if (edges.empty()) throw std::invalid_argument("mass-spring: no springs");
-  std::vector<std::array<int32_t, 2>> ordered;
-  ordered.reserve(edges.size());
-  for (size_t e = 0; e < edges.size(); ++e) {
-    const auto [a, b] = edges[e];
-    if (a < 0 || b < 0 || a >= rest.cols() || b >= rest.cols() || a == b) {
-      throw std::invalid_argument("mass-spring: spring " + std::to_string(e) + " joins nodes " +
-                                  std::to_string(a) + " and " + std::to_string(b) +
-                                  ", not two distinct nodes of 0.." +
-                                  std::to_string(rest.cols() - 1));
-    }
-    ordered.push_back({std::min(a, b), std::max(a, b)});
-  }
-  std::sort(ordered.begin(), ordered.end());  // the force loop runs over springs by first node
+  // Sorted as a mesh's edges are: the layouts, and so the results, follow the spring order.
+  const std::vector<std::array<int32_t, 2>> ordered =
+      SortedEdges(edges, rest.cols(), "mass-spring", "spring");
   std::unique_ptr<MassSpringModel> model(new MassSpringModel());
   model->Build(rest, ordered, std::vector<double>(ordered.size(), 0.0),
                std::vector<double>(static_cast<size_t>(rest.cols()), 0.0), parameters);
@@ -677,13 +668,7 @@ void MassSpringModel::Build(const mesh::Points& rest,
                             const std::vector<double>& node_size, const MassSpringParameters& p) {
   rest_ = rest;
   const auto n = static_cast<size_t>(rest.cols());
-  mass_.resize(n);
-  inverse_mass_.resize(n);
-  for (size_t i = 0; i < n; ++i) {
-    mass_[i] = p.node_mass > 0.0 ? p.node_mass : p.density * node_size[i];
-    // A node no element touches has no mass: it cannot move (inverse mass 0).
-    inverse_mass_[i] = mass_[i] > 0.0 ? 1.0 / mass_[i] : 0.0;
-  }
+  LumpMasses(node_size, p.density, p.node_mass, &mass_, &inverse_mass_);
   const size_t m = edges.size();
   spring_i_.resize(m);
   spring_j_.resize(m);
@@ -694,11 +679,7 @@ void MassSpringModel::Build(const mesh::Points& rest,
     const auto [i, j] = edges[s];
     spring_i_[s] = i;
     spring_j_[s] = j;
-    const double length = (rest.col(j) - rest.col(i)).norm();
-    if (!(length > 0.0)) {
-      throw std::invalid_argument("mass-spring: nodes " + std::to_string(i) + " and " +
-                                  std::to_string(j) + " coincide (a zero-length spring)");
-    }
+    const double length = EdgeRestLength(rest, i, j, "mass-spring", "spring");
     rest_length_[s] = length;
     // Van Gelder 1998: k_e = E Σ size / |e|².
     stiffness_[s] = p.spring_stiffness > 0.0
@@ -711,24 +692,7 @@ void MassSpringModel::Build(const mesh::Points& rest,
   }
   MergeNearlyEqual(&stiffness_);
   MergeNearlyEqual(&damping_);
-  // Springs come sorted by (i, j): the springs whose first node is i are one run.
-  first_node_start_.assign(n + 1, 0);
-  for (size_t s = 0; s < m; ++s) ++first_node_start_[static_cast<size_t>(spring_i_[s]) + 1];
-  for (size_t i = 0; i < n; ++i) first_node_start_[i + 1] += first_node_start_[i];
-  node_spring_start_.assign(n + 1, 0);
-  for (size_t s = 0; s < m; ++s) {
-    ++node_spring_start_[static_cast<size_t>(spring_i_[s]) + 1];
-    ++node_spring_start_[static_cast<size_t>(spring_j_[s]) + 1];
-  }
-  for (size_t i = 0; i < n; ++i) node_spring_start_[i + 1] += node_spring_start_[i];
-  node_springs_.resize(2 * m);
-  std::vector<int32_t> fill(node_spring_start_.begin(), node_spring_start_.end() - 1);
-  for (size_t s = 0; s < m; ++s) {
-    node_springs_[static_cast<size_t>(fill[static_cast<size_t>(spring_i_[s])]++)] =
-        static_cast<int32_t>(s);
-    node_springs_[static_cast<size_t>(fill[static_cast<size_t>(spring_j_[s])]++)] =
-        static_cast<int32_t>(s);
-  }
+  NodeEdgeLists(n, spring_i_, spring_j_, &node_spring_start_, &node_springs_);
   anchor_nodes_.clear();
   anchor_damping_.clear();
   anchor_stiffness_ = p.anchor_stiffness;
@@ -1263,13 +1227,8 @@ Eigen::Matrix3d MassSpringModel::LocalStiffness(const TissueState& state, int32_
   for (int32_t e = node_spring_start_[static_cast<size_t>(node)];
        e < node_spring_start_[static_cast<size_t>(node) + 1]; ++e) {
     const auto s = static_cast<size_t>(node_springs_[static_cast<size_t>(e)]);
-    const Vector3d d = state.positions.col(spring_j_[s]) - state.positions.col(spring_i_[s]);
-    const double length = d.norm();
-    if (!(length > 0.0)) continue;
-    const Vector3d u = d / length;
-    const Eigen::Matrix3d uu = u * u.transpose();
-    k_local += ms.stiffness[s] *
-               (uu + (1.0 - rest_length_[s] / length) * (Eigen::Matrix3d::Identity() - uu));
+    AddEdgeStiffness(state.positions.col(spring_j_[s]) - state.positions.col(spring_i_[s]),
+                     rest_length_[s], ms.stiffness[s], &k_local);
   }
   if (anchor_stiffness_ > 0.0 && mass_[static_cast<size_t>(node)] > 0.0) {
     k_local += anchor_stiffness_ * Eigen::Matrix3d::Identity();

@@ -135,11 +135,9 @@ class MassSpringModel final : public TissueModel {
   std::vector<double> inverse_mass_;
   std::vector<int32_t> spring_i_;  // num_springs, i < j
   std::vector<int32_t> spring_j_;
-  std::vector<double> rest_length_;  // [m]
-  std::vector<double> stiffness_;    // [N/m]
-  std::vector<double> damping_;      // [N s/m]
-  std::vector<int32_t>
-      first_node_start_;  // num_nodes + 1: springs [start_i, start_i+1) have i first
+  std::vector<double> rest_length_;         // [m]
+  std::vector<double> stiffness_;           // [N/m]
+  std::vector<double> damping_;             // [N s/m]
   std::vector<int32_t> node_spring_start_;  // num_nodes + 1, CSR of springs per node
   std::vector<int32_t> node_springs_;
   std::vector<int32_t> anchor_nodes_;   // nodes with a zero-rest-length spring to rest

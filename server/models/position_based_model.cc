@@ -17,6 +17,7 @@
 #include "common/mesh/geometry.h"
 #include "common/mesh/topology.h"
 #include "server/models/cpu_features.h"
+#include "server/models/particle_edges.h"
 #include "server/models/particle_mesh.h"
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -429,18 +430,8 @@ std::unique_ptr<PositionBasedModel> PositionBasedModel::FromEdges(
   if (VolumeOn(parameters.volume)) {
     Refuse("the volume reaction needs a closed surface; constraints given as edges have none");
   }
-  std::vector<std::array<int32_t, 2>> ordered;
-  ordered.reserve(edges.size());
-  for (size_t e = 0; e < edges.size(); ++e) {
-    const auto [a, b] = edges[e];
-    if (a < 0 || b < 0 || a >= rest.cols() || b >= rest.cols() || a == b) {
-      Refuse("constraint " + std::to_string(e) + " joins nodes " + std::to_string(a) + " and " +
-             std::to_string(b) + ", not two distinct nodes of 0.." +
-             std::to_string(rest.cols() - 1));
-    }
-    ordered.push_back({std::min(a, b), std::max(a, b)});
-  }
-  std::sort(ordered.begin(), ordered.end());
+  std::vector<std::array<int32_t, 2>> ordered =
+      SortedEdges(edges, rest.cols(), "position-based", "constraint");
   ordered.erase(std::unique(ordered.begin(), ordered.end()), ordered.end());
   std::unique_ptr<PositionBasedModel> model(new PositionBasedModel());
   model->Build(rest, ordered, std::vector<double>(ordered.size(), 0.0),
@@ -456,14 +447,7 @@ void PositionBasedModel::Build(const mesh::Points& rest,
   parameters_ = p;
   rest_ = rest;
   const auto n = static_cast<size_t>(rest.cols());
-  mass_.resize(n);
-  inverse_mass_.resize(n);
-  for (size_t i = 0; i < n; ++i) {
-    // Lumped masses ρ · size / corners, as in the mass-spring model.
-    mass_[i] = p.node_mass > 0.0 ? p.node_mass : p.density * node_size[i];
-    // A node no element touches has no mass: it cannot move (inverse mass 0).
-    inverse_mass_[i] = mass_[i] > 0.0 ? 1.0 / mass_[i] : 0.0;
-  }
+  LumpMasses(node_size, p.density, p.node_mass, &mass_, &inverse_mass_);
   const size_t m = edges.size();
   edge_i_.resize(m);
   edge_j_.resize(m);
@@ -475,11 +459,7 @@ void PositionBasedModel::Build(const mesh::Points& rest,
     const auto [i, j] = edges[e];
     edge_i_[e] = i;
     edge_j_[e] = j;
-    const double length = (rest.col(j) - rest.col(i)).norm();
-    if (!(length > 0.0)) {
-      Refuse("nodes " + std::to_string(i) + " and " + std::to_string(j) +
-             " coincide (a zero-length constraint)");
-    }
+    const double length = EdgeRestLength(rest, i, j, "position-based", "constraint");
     rest_length_[e] = length;
     if (xpbd) {
       // Van Gelder 1998: k_e = E Σ size / |e|²; compliance = 1/k_e.
@@ -493,20 +473,7 @@ void PositionBasedModel::Build(const mesh::Points& rest,
       edge_compliance_[e] = 1.0 / k;
     }
   }
-  node_edge_start_.assign(n + 1, 0);
-  for (size_t e = 0; e < m; ++e) {
-    ++node_edge_start_[static_cast<size_t>(edge_i_[e]) + 1];
-    ++node_edge_start_[static_cast<size_t>(edge_j_[e]) + 1];
-  }
-  for (size_t i = 0; i < n; ++i) node_edge_start_[i + 1] += node_edge_start_[i];
-  node_edges_.resize(2 * m);
-  std::vector<int32_t> fill(node_edge_start_.begin(), node_edge_start_.end() - 1);
-  for (size_t e = 0; e < m; ++e) {
-    node_edges_[static_cast<size_t>(fill[static_cast<size_t>(edge_i_[e])]++)] =
-        static_cast<int32_t>(e);
-    node_edges_[static_cast<size_t>(fill[static_cast<size_t>(edge_j_[e])]++)] =
-        static_cast<int32_t>(e);
-  }
+  NodeEdgeLists(n, edge_i_, edge_j_, &node_edge_start_, &node_edges_);
   OrderNodes();
   ColourConstraints();
   simd_ = p.vectorised && CpuHasAvx512();
@@ -937,13 +904,8 @@ Eigen::Matrix3d PositionBasedModel::LocalStiffness(const TissueState& base, int3
        slot < node_edge_start_[static_cast<size_t>(node) + 1]; ++slot) {
     const auto e = static_cast<size_t>(node_edges_[static_cast<size_t>(slot)]);
     if (state.cut[e] != 0) continue;
-    const Vector3d d = state.positions.col(edge_j_[e]) - state.positions.col(edge_i_[e]);
-    const double length = d.norm();
-    if (!(length > 0.0)) continue;
-    const Vector3d u = d / length;
-    const Eigen::Matrix3d uu = u * u.transpose();
-    k_local += EffectiveStiffness(e, state.last_dt) *
-               (uu + (1.0 - rest_length_[e] / length) * (Eigen::Matrix3d::Identity() - uu));
+    AddEdgeStiffness(state.positions.col(edge_j_[e]) - state.positions.col(edge_i_[e]),
+                     rest_length_[e], EffectiveStiffness(e, state.last_dt), &k_local);
   }
   if (volume_ != nullptr) k_local += volume_->LocalStiffness(state.positions, node);
   return k_local;
