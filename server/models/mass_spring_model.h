@@ -10,7 +10,7 @@
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
-#include "server/models/huge_pages.h"
+#include "server/models/mass_spring_slice_layout.h"
 #include "server/models/tissue_model.h"
 
 namespace somasim::models {
@@ -143,58 +143,8 @@ class MassSpringModel final : public TissueModel {
   std::vector<int32_t> anchor_nodes_;   // nodes with a zero-rest-length spring to rest
   std::vector<double> anchor_damping_;  // d_i = 2 ζ √(k_s m_i) [N s/m], one per anchored node
   double anchor_stiffness_ = 0.0;       // k_s [N/m]
-  // --- explicit-step data (mass_spring_model.cc) ---
-  // The springs in the explicit pass's own layout (SELL-8): nodes go in slices of 8 consecutive
-  // nodes, one SIMD lane each; each spring belongs to the lane of its end in the earlier slice
-  // (either end when both share one) and sits in one column of its slice (8 lanes, at most one
-  // spring each): first the slice's run columns (one offset Δ = other node − lane node each, so
-  // lane l's other node is lane 0's + l; lanes without a spring of that Δ are empty), then its
-  // gathered ones.
-  void BuildExplicitLayout();
-  std::vector<int32_t> slice_column_start_;  // num_slices + 1: columns of each slice
-  // 8 per column: 3 × the lane's other node (a gathered column's empty lanes: 0; a run
-  // column's: the node lane 0's + l would be).
-  HugePageVector<int32_t> column_other3_;
-  HugePageVector<double> column_rest_;    // [m], 8 per column: l0 (0: empty)
-  HugePageVector<uint8_t> column_lanes_;  // 1 per column: bit l set when lane l has a spring
-  // num_slices: each slice's first gathered column (after its run columns).
-  std::vector<int32_t> slice_gathered_column_;
-  std::vector<int32_t> spring_slot_;  // num_springs: 8 × column + lane of each spring
-  // When the springs share few (k, d) pairs (BuildExplicitLayout decides): the pairs (k [N/m],
-  // d [N s/m] interleaved; pair 0 is (0, 0), for empty lanes and cut springs) and each spring's
-  // pair; the state then holds MassSpringState::column_material instead of
-  // column_stiffness_damping. Both empty otherwise.
-  static constexpr size_t kMaxMaterialPairs = 4096;  // 64 KiB of table
-  // What a gathered column (8 gathers of 8 lanes) costs the pass in run columns (24 + 24
-  // consecutive values, 12 permutes), as measured on the benchmark organs (BuildExplicitLayout).
-  static constexpr double kGatheredColumnCost = 2.0;
-  std::vector<double> material_kd_;
-  std::vector<uint16_t> spring_material_;
-  // With the pairs: each column's one pair when all its springs have it (cut ones have pair 0
-  // in the state), else 0.
-  HugePageVector<uint16_t> column_pair_;
-  // Each column's forces go to a ring (MassSpringState::column_forces) of ring_columns_ columns
-  // (24 doubles each: x of the 8 lanes, then y, then z) and one zero column after them (never
-  // written), whence the other nodes' slices take them: a slice's rotated incoming columns (one
-  // per Δ of run columns ending on it: lanes r..7 of one ring column and 0..r-1 of another, or
-  // of the zero column), then gathered ones (column k: each lane's k-th other spring).
-  int32_t ring_columns_ = 1;  // a power of two
-  // The AVX-512 pass reads the nodes' start-of-step x and v from a window of recent slices
-  // (MassSpringState::window: x, y, z, vx, vy, vz rows of 8 window_slices_ nodes, a node at
-  // its index mod 8 window_slices_, and a copy of the first 8 after the last), filled
-  // window_lead_ slices ahead: a run column's other nodes are then 6 loads, with no transpose.
-  int32_t window_slices_ = 1;  // a power of two >= window_lead_ + 2
-  int32_t window_lead_ = 0;    // slices: the farthest a run column reads past its own slice
-  // Per column: lane 0's other node mod 8 window_slices_ (a run column's place in the window).
-  HugePageVector<int32_t> column_window_;
-  std::vector<int32_t> slice_incoming_start_;  // num_slices + 1: incoming columns of each slice
-  // 8 per incoming column: rotated, the two ring columns' indices and r; gathered, each lane's
-  // ring index of the x.
-  HugePageVector<int32_t> incoming_slot_;
-  HugePageVector<uint8_t> incoming_lanes_;  // 1 per incoming column: lanes with a spring
-  // num_slices: each slice's first gathered incoming column (after its rotated ones).
-  std::vector<int32_t> slice_gathered_incoming_;
-  // --- end of explicit-step data ---
+  // The springs in the explicit slice pass's layout (mass_spring_slice_layout.h).
+  MassSpringSliceLayout layout_;
   // --- implicit-step data (mass_spring_implicit.cc) ---
   // Multicolour layout of the Gauss-Seidel preconditioner: nodes grouped by colour (no spring
   // joins two nodes of one colour), each colour padded to whole groups of 8 lanes. A lane is a

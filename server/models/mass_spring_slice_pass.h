@@ -1,6 +1,6 @@
 // The explicit mass-spring step (and InternalForces), seed 002 §2.1 eq. 1–5: one pass
 // over the nodes in slices of 8 consecutive nodes, one SIMD lane per node (a SELL-8 layout,
-// built once in BuildExplicitLayout), with no scatter and no scalar work per spring:
+// built once: mass_spring_slice_layout.h), with no scatter and no scalar work per spring:
 //  - every spring belongs to the lane of its end in the earlier slice (either end when both
 //    share a slice: the less loaded one) and sits in one column of that slice (8 lanes, at most
 //    one spring each). A lane's own x and v are loaded once per slice and its forces summed in
@@ -8,7 +8,7 @@
 //    node (an edge kind of a structured numbering; lanes without one stay empty): the other
 //    ends are 8 consecutive nodes; the other springs sit in gathered columns, whose other ends'
 //    x and v are gathered. Runs are 99.99 % of the columns on the 53³ grid and 94 % on
-//    gallbladder5400 (how many lanes a run needs is chosen per slice, BuildExplicitLayout).
+//    gallbladder5400 (how many lanes a run needs is chosen per slice, BuildSliceLayout).
 //  - the AVX-512 pass transposes each slice's x and v once, into a window of recent slices
 //    (x, y, z, vx, vy, vz rows: MassSpringState::window), as far ahead as the farthest run
 //    column reads; a slice's own x and v and a run column's other ends are then 6 loads each
@@ -98,7 +98,7 @@ struct SlicePass {
   double dt;                   // [s]
   double gravity[3];           // [m/s²]
   double component_limit;      // [m/s]: a velocity component above it is flagged
-  // The AVX-512 pass's window of x and v (MassSpringModel::window_slices_): rows x, y, z, vx,
+  // The AVX-512 pass's window of x and v (MassSpringSliceLayout::window_slices): rows x, y, z, vx,
   // vy, vz of window_mask + 9 values each (64-byte aligned, window_stride apart), node i at
   // i & window_mask, the first 8 again after the last; slice s + window_lead is copied in at
   // the start of slice s. column_window: each column's lane 0 other node & window_mask.
