@@ -26,7 +26,7 @@ enum class MassSpringIntegrator {
   kSymplecticEuler,
   // Linearised backward Euler (Baraff & Witkin 1998): (M + dt C + dt² K) Δv = dt (f - dt K v),
   // solved by conjugate gradients preconditioned with a multicolour symmetric block
-  // Gauss–Seidel sweep (8 independent nodes per AVX-512 register; mass_spring_implicit.cc),
+  // Gauss–Seidel sweep (8 independent nodes per AVX-512 register; mass_spring_implicit_cg.cc),
   // matrix-free over the springs, started from Δv extrapolated from the last two steps. Stable
   // for stiff tissue at 1 ms. K keeps only the non-negative transverse stiffness
   // k (1 - l0/l)₊ so the system stays positive definite.
@@ -113,10 +113,16 @@ class MassSpringModel final : public TissueModel {
   }
 
  private:
+  // The implicit step (mass_spring_implicit*.cc): the linear system at the state the step starts
+  // from (its kernels, MassSpringImplicitStep, read the spring arrays), then its CG solve into
+  // state->implicit_dv, which returns whether CG converged and sets the iterations it took.
   friend class MassSpringImplicitStep;
   void AdvanceImplicit(const StepInputs& inputs, TissueState* state) const;
-  // Implicit-step data and scratch (mass_spring_implicit.cc): called at the end of Build and by
-  // MakeState when the integrator is implicit.
+  void BuildImplicitSystem(const StepInputs& inputs, bool avx512, MassSpringState* state) const;
+  bool SolveImplicitSystem(const StepInputs& inputs, bool avx512, MassSpringState* state,
+                           int* iterations) const;
+  // Implicit-step data and scratch (mass_spring_implicit_layout.cc): called at the end of Build
+  // and by MakeState when the integrator is implicit.
   void BuildImplicitData();
   void SizeImplicitScratch(MassSpringState* state) const;
   // Adds gravity, external forces and attachments to state forces (after InternalForces).
@@ -145,7 +151,7 @@ class MassSpringModel final : public TissueModel {
   double anchor_stiffness_ = 0.0;       // k_s [N/m]
   // The springs in the explicit slice pass's layout (mass_spring_slice_layout.h).
   MassSpringSliceLayout layout_;
-  // --- implicit-step data (mass_spring_implicit.cc) ---
+  // --- implicit-step data (mass_spring_implicit_layout.cc) ---
   // Multicolour layout of the Gauss-Seidel preconditioner: nodes grouped by colour (no spring
   // joins two nodes of one colour), each colour padded to whole groups of 8 lanes. A lane is a
   // node's index in the solver's vectors (3 blocks x, y, z of implicit_padded_ doubles each).

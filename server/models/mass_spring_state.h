@@ -43,7 +43,7 @@ class MassSpringState final : public TissueState {
   // bytes. Scratch, also of InternalForces on a const state.
   mutable HugePageVector<double> window;
   // --- end of explicit-step scratch ---
-  // --- implicit-step scratch (mass_spring_implicit.cc) ---
+  // --- implicit-step scratch (mass_spring_implicit*.cc) ---
   // Per spring and one zero dummy spring past them (records of 8): w_s (x, y, z), a_s, K_s (v_i -
   // v_j) (x, y, z) and 0, the step's linearisation.
   std::vector<double> implicit_springs;
