@@ -30,6 +30,8 @@
 
 namespace somasim::models {
 
+class PositionBasedState;
+
 enum class PositionBasedMode {
   // Seed 004 eq. 2–3: x1 += k w1/(w1+w2) (|d|-a)/|d| d, x2 -= k w2/(w1+w2) (|d|-a)/|d| d with
   // d = x2 - x1. The apparent stiffness grows with the iteration count and 1/Δt².
@@ -148,6 +150,19 @@ class PositionBasedModel final : public TissueModel {
   void OrderNodes();
   // Greedy colouring of the constraints into sweep order (colour_start_, sweep_*).
   void ColourConstraints();
+  // The step's stages (position_based_step.cc), in the order Advance runs them: the Verlet
+  // prediction into the node records (with the volume reaction; fixed and prescribed nodes get
+  // inverse mass 0), the attachments merged per node, the per-constraint factors (recomputed
+  // only when Δt or the inverse masses change), the sweeps (each: the distance constraints colour
+  // by colour, the attachments, the primal correction if on), and the copy back to public order
+  // with the state's check.
+  void PredictRecords(const StepInputs& inputs, PositionBasedState* state) const;
+  void MergeAttachments(const StepInputs& inputs, PositionBasedState* state) const;
+  void PrepareSweepFactors(double dt, PositionBasedState* state) const;
+  void RunSweeps(double dt, PositionBasedState* state) const;
+  void ProjectAttachments(double inverse_dt2, PositionBasedState* state) const;
+  void CorrectPrimal(PositionBasedState* state) const;
+  void CopyBack(double dt, PositionBasedState* state) const;
 
   PositionBasedParameters parameters_;
   mesh::Points rest_;         // [m], 3 × num_nodes
