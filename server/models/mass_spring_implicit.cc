@@ -1,33 +1,8 @@
-// Implicit Euler for the mass-spring model (MassSpringIntegrator::kImplicitEuler): linearised
-// backward Euler (Baraff & Witkin 1998) solved by conjugate gradients, matrix-free over the
-// springs, preconditioned by a multicolour symmetric block Gauss-Seidel sweep.
-//
-// Speed (issue 4, BM_MassSpringImplicit): a Gauss-Seidel sweep in the mesh's own node order is a
-// chain of dependent nodes (on gallbladder5400 the longest has 2206 of its 5400 nodes), so the
-// sweep ran at the latency of its floating-point chain, ~60 cycles a node. Build therefore
-// colours the nodes greedily (no spring joins two nodes of one colour; the built-in surfaces
-// need 5-6 colours) and lays them out colour by colour in groups of 8 lanes: every node of a
-// colour depends only on other colours, so one AVX-512 register holds 8 independent nodes, each
-// lane walking its own springs in rows of 8 slots (one spring per lane and row; the sort by
-// spring counts leaves <1 % of the slots empty). Hardware gathers cost ~16 cycles each here, so
-// the values read at other nodes are kept as records (x, y, z, 0) and fetched with 8 plain loads
-// and a transpose (Transpose8x4). Each step:
-//   1. Linearise: per spring, 8 at a time, its block B_s = a_s I + w_s w_sᵀ of A and K_s (v_i -
-//      v_j) for the right-hand side;
-//   2. Assemble: per group, copies the blocks into the slot rows (so the sweeps read them
-//      contiguously) and sums each node's diagonal block and K v, then inverts the blocks;
-//   3. CG, each iteration one preconditioner application (forward sweep over the lower-colour
-//      slots, backward sweep over the higher-colour ones, which also yields A z but for the
-//      lower-colour part, added by a third pass over the lower slots), so that CG updates
-//      A p = A z + β A p without a separate product; that third pass also updates p and A p
-//      (the CG direction), and r · z comes from the forward sweep (r · z = yᵀ D y). CG's own
-//      step along the last direction rides along too (CgUpdate): the forward sweep, which loads
-//      r anyway, does r -= α q and sums |r|² (stopping right there once converged), the third
-//      pass, which loads p anyway, does Δv += α p; no separate pass over p, q, Δv, r, and z is
-//      read back from the sweeps' records instead of a 3 × P array of its own. CG starts from
-//      Δv extrapolated from the last two steps (kept only when it beats zero).
-// The colour ordering needs ~25 % more iterations than the natural one (its sweeps couple fewer
-// neighbours per pass), for sweeps that run several times faster.
+// The mass-spring model's implicit step (MassSpringIntegrator::kImplicitEuler): linearised
+// backward Euler (Baraff & Witkin 1998), A Δv = b built at the state the step starts from
+// (mass_spring_implicit_system.cc) and solved by conjugate gradients preconditioned with a
+// multicolour symmetric block Gauss-Seidel sweep (mass_spring_implicit_cg.cc). The derivation,
+// the layout and the fused CG passes: docs/models.md, "The implicit mass-spring step".
 #include <algorithm>
 #include <cstddef>
 #include <cstdint>
@@ -70,9 +45,8 @@ bool MassSpringModel::SolveImplicitSystem(const StepInputs& inputs, bool avx512,
   const size_t size = 3 * p;
   // Preconditioned conjugate gradients on (M + dt C + dt² K) Δv = rhs, held rows at 0, from
   // 2 Δv_last - Δv_before_last when that is closer than 0 (it differs from this step's Δv by
-  // O(dt²) in smooth motion, against O(dt) for Δv_last alone: ~11 % fewer iterations on
-  // gallbladder5400; a guess left by a rejected step, or non-finite, fails the test and is
-  // dropped).
+  // O(dt²) in smooth motion, against O(dt) for Δv_last alone, and so saves iterations; a guess
+  // left by a rejected step, or non-finite, fails the test and is dropped).
   ImplicitLayout layout;
   layout.padded = p;
   layout.groups = p / kImplicitLanes;

@@ -32,8 +32,8 @@ SOMASIM_MSI_TARGET inline void Store3(double* v, size_t p, size_t i, const Vec3&
   _mm512_storeu_pd(v + 2 * p + i, a.z);
 }
 
-// Gathers are slow on this hardware (~16 cycles each, three per row of slots), so the values a
-// sweep reads at other nodes are kept as records of 4 doubles (x, y, z, 0 per lane, "AoS4"):
+// Hardware gathers are slow next to plain loads (a sweep would need three per row of slots), so
+// the values a sweep reads at other nodes are kept as records of 4 doubles (x, y, z, 0, "AoS4"):
 // 8 records are 8 plain 256-bit loads, transposed here into one vector per component (record k
 // in lane k). With kFourth, out[3] gets the fourth components.
 template <bool kFourth>

@@ -15,15 +15,10 @@
 
 namespace somasim::models {
 
-// The kernels of the system; a friend of MassSpringModel to read its spring arrays.
-//
-// Each spring s (nodes i, j, unit direction u from i to j, length l) contributes the block
-//   B_s = (dt D_s + dt² k_s) u uᵀ + dt² k_s c_s (I - u uᵀ),   c_s = (1 - l0/l)₊ ∈ [0, 1),
-// to A = M + dt C + dt² K (Baraff & Witkin 1998 eq. 18, with the spring Jacobian of seed 002
-// eq. 1–3 keeping only the non-negative transverse stiffness), added on the diagonal blocks ii
-// and jj and subtracted on ij and ji. Written as B_s = a_s I + w_s w_sᵀ with
-//   a_s = dt² k_s c_s,   w_s = √(dt D_s + dt² k_s (1 - c_s)) u
-// (the root's argument is >= 0 because c_s < 1), B_s d costs 3 products, one dot and 3 FMAs.
+// The kernels of the system; a friend of MassSpringModel to read its spring arrays. Each spring s
+// adds the block B_s = a_s I + w_s w_sᵀ of A (Baraff & Witkin 1998 eq. 18) on the diagonal blocks
+// ii and jj and subtracts it on ij and ji, with a_s = dt² k_s c_s, w_s = √(dt D_s + dt² k_s
+// (1 - c_s)) u and c_s = (1 - l0/l)₊ (the derivation: docs/models.md).
 class MassSpringImplicitStep {
  public:
   // Per spring s (state->implicit_springs, records of kImplicitRecord = 8 doubles): w_s, a_s, h_s =

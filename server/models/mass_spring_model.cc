@@ -63,9 +63,10 @@ SlicePass PassOver(const MassSpringSliceLayout& layout, const MassSpringState& s
 
 // Values (>= 0) that agree to kMergeTolerance relative become one: each group of values sorted
 // within the tolerance of its least takes that least. Rounding makes the constants of congruent
-// springs differ in their last bits (the 53³ grid: 2,103 distinct (k, d) pairs, 20 once merged),
-// which would keep the explicit pass from treating a column of them as one material; 1e-12 of a
-// tissue's stiffness is far below anything measured of it.
+// springs differ in their last bits (a structured grid's thousands of distinct (k, d) pairs are a
+// few tens once merged: docs/benchmarks.md), which would keep the explicit pass from treating a
+// column of them as one material; 1e-12 of a tissue's stiffness is far below anything measured
+// of it.
 constexpr double kMergeTolerance = 1e-12;
 void MergeNearlyEqual(std::vector<double>* values) {
   std::vector<size_t> order(values->size());

@@ -46,7 +46,7 @@ struct MassSpringParameters {
   MassSpringIntegrator integrator = MassSpringIntegrator::kSymplecticEuler;
   // Implicit: relative residual |r|/|b| at which CG stops, > 0. The step's own linearisation and
   // time-discretisation error is O(dt²); at 1e-6 an organ's trajectory stays within micrometres
-  // of an exact solve over hundreds of 1 ms steps (measured on gallbladder5400: 8 µm in 200).
+  // of an exact solve over hundreds of 1 ms steps (docs/benchmarks.md).
   double cg_tolerance = 1e-6;
   int cg_max_iterations = 500;  // implicit: CG iterations per step at most, > 0
   // Seed 001's generalised spring (eq. 10, SPEC §4.1): when > 0, every node with mass is tied to

@@ -1,51 +1,8 @@
-// The explicit mass-spring step (and InternalForces), seed 002 §2.1 eq. 1–5: one pass
-// over the nodes in slices of 8 consecutive nodes, one SIMD lane per node (a SELL-8 layout,
-// built once: mass_spring_slice_layout.h), with no scatter and no scalar work per spring:
-//  - every spring belongs to the lane of its end in the earlier slice (either end when both
-//    share a slice: the less loaded one) and sits in one column of that slice (8 lanes, at most
-//    one spring each). A lane's own x and v are loaded once per slice and its forces summed in
-//    a register. A "run" column holds the slice's springs of one offset Δ = other node − lane
-//    node (an edge kind of a structured numbering; lanes without one stay empty): the other
-//    ends are 8 consecutive nodes; the other springs sit in gathered columns, whose other ends'
-//    x and v are gathered. Runs are 99.99 % of the columns on the 53³ grid and 94 % on
-//    gallbladder5400 (how many lanes a run needs is chosen per slice, BuildSliceLayout).
-//  - the AVX-512 pass transposes each slice's x and v once, into a window of recent slices
-//    (x, y, z, vx, vy, vz rows: MassSpringState::window), as far ahead as the farthest run
-//    column reads; a slice's own x and v and a run column's other ends are then 6 loads each
-//    from the window, wherever the 8 consecutive nodes start, instead of 6 loads and 12 permutes
-//    per column (grid1m −8 % on Emerald Rapids, where the permutes share one port).
-//  - each column stores its 8 forces F (3 vector stores, 0 in empty lanes) into a ring of
-//    recent columns; each slice then subtracts the forces of the springs ending on its nodes
-//    ("incoming columns"). Those of one Δ start in lanes r..7 of one run column and lanes
-//    0..r-1 of the next slice's (r = -Δ mod 8): two loads and a permute, lanes without such a
-//    spring reading an empty lane or the ring's zero column. The rest are gathered from the
-//    ring by precomputed slots. No read-modify-write of shared memory: the old pass's scalar
-//    scatter `pending[j] -= F` and its per-node bookkeeping (a mispredicted branch per node)
-//    are gone. The ring (a power of two of columns, sized in Build so that no column is
-//    overwritten before its last reader's slice) stays in L1/L2 however large the mesh.
-//  - when a slice's columns are done, every spring touching its nodes is done too (springs that
-//    end in a slice start in it or in an earlier one), and no later spring reads them (later
-//    springs start in later slices and end beyond their start), so the slice's 8 nodes are
-//    integrated at once (symplectic Euler on the 24 flat x, y, z values) while their data is
-//    still in L1: one pass over memory. The pass reads the state the step starts from and
-//    writes the new one into other buffers: Advance swaps the state's positions and velocities
-//    with its last-good ones first (SavesGoodStateItself without a copy), so nothing is saved
-//    for a rollback; and the pass checks the values it writes for NaN and speed
-//    (ChecksStateItself), so Step makes no second pass over them.
-//  - per spring the pass streams about 32 bytes (other node, l0, k, d, incoming slot); k and d
-//    live in the state in the column layout (MakeState fills and Cut zeroes both copies). When
-//    the springs share few exact (k, d) pairs (a structured mesh: 20 pairs for the 1M springs
-//    of a 53³ grid, once Build has merged constants that differ by rounding only), the state
-//    keeps instead a 2-byte index per spring into the model's table of pairs (pair 0 is (0, 0):
-//    Cut just sets the index to 0), gathered from L1/L2: 18 bytes per spring instead of 32 of
-//    the pass's traffic. A column whose springs share one pair (82 % of the grid's) has it
-//    broadcast instead of gathered.
-//  - without anchors or grasps nothing is added to a node's force before the pass, which then
-//    neither reads nor clears `pending` (48 bytes per node less).
-//  - the pass's streams (columns, incoming columns) and scratch (ring, window, the state's
-//    constants) live on transparent huge pages where the kernel gives them (huge_pages.h): on the
-//    1M-spring grid they span ~30 MB, and with 4 KiB pages their TLB misses cost ~10 % of the
-//    step under a hypervisor.
+// The explicit mass-spring pass, seed 002 §2.1 eq. 1–5 (the step and InternalForces): one pass
+// over the nodes in slices of 8, one SIMD lane a node, over the springs in their slice layout
+// (mass_spring_slice_layout.h); each spring's force reaches its later end through a ring of
+// recent columns, and each slice's nodes are integrated as soon as its last spring is done. How
+// and why: docs/models.md, "The explicit mass-spring pass".
 #pragma once
 
 #include <cstddef>
@@ -55,7 +12,7 @@
 
 namespace somasim::models {
 
-// What the slice pass reads and writes (see the comment at the top of the file). Arrays of
+// What the slice pass reads and writes (docs/models.md). Arrays of
 // positions, velocities and forces are 3 × num_nodes, column-major (x, y, z of node 0, then of
 // node 1, ...): "flat" below.
 struct SlicePass {

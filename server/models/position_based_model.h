@@ -3,19 +3,7 @@
 // Verlet integration, x' = 2x - x* + a Δt² (seed 004 eq. 1), then projects the constraints by
 // Gauss–Seidel sweeps in a fixed order, either with the seed's stiffness k ∈ (0,1] (eq. 2–3) or
 // with XPBD compliance (Macklin, Müller & Chentanez 2016, "XPBD: position-based simulation of
-// compliant constrained dynamics"), whose stiffness depends neither on the iteration count nor
-// on the step. Pure kernel.
-//
-// Why it is fast (one thread): the sweeps run on 32-byte node records (x, y, z, w) in reverse
-// Cuthill–McKee order; constraints are graph-coloured, and each colour is projected 2 × 8 at a
-// time with AVX-512 (8 records transposed into lanes X Y Z W, projected, transposed back: the
-// transposes are the floor of the cost, ~2 shuffles per record each way). Per-constraint data
-// are contiguous arrays in sweep order (a, α̃, 1/(w_i + w_j + α̃), λ), the factors recomputed
-// only when Δt or the inverse masses change. 1/l is rsqrt14 with one third-order correction;
-// Δλ is one fused negated product. The first sweep of a step reads no λ (all 0 then) and writes
-// every λ, so a step neither zeroes λ nor reads α̃ in that sweep; λ is kept by swap on accepted
-// steps. The prediction into the records is vectorised; the copy back streams x and v in
-// public order. Results: scalar and vector sweeps agree to rounding (~1e-16 relative).
+// compliant constrained dynamics"). Pure kernel; how the sweeps run: docs/models.md.
 #pragma once
 
 #include <Eigen/Core>

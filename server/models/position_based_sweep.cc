@@ -58,9 +58,8 @@ double ProjectScalar(const SweepArrays& s, size_t begin, size_t end, double* __r
 // lanes: two 256-bit loads per 512-bit register, then an 8 × 4 transpose of which the W row is
 // not formed (the sweep's factors w gain come from the state). Loading pairs the
 // records 0 2, 1 3, 4 6, 5 7, so that unpacks and 128-bit lane selections (vshuff64x2)
-// transpose them; storing pairs 0 4, 1 5, 2 6, 3 7 and uses two-source permutes. On Zen 4 a
-// two-source permute takes a whole multiply slot and a lane selection about 0.6 of one (3–4 %
-// of the sweep).
+// transpose them; storing pairs 0 4, 1 5, 2 6, 3 7 and uses two-source permutes. A lane selection
+// takes less of the shuffle units than a two-source permute (docs/benchmarks.md).
 // (The masked forms of unpack, shuffle and extract, all lanes set, are the plain instructions
 // without gcc-12's uninitialised-value warnings.)
 struct Lanes {
@@ -95,13 +94,13 @@ __attribute__((target("avx512f,avx512vl"), always_inline)) inline Lanes LoadReco
 }
 
 // The inverse of LoadPair for x, y, z: lane 3 (w) of the records is not written (masked stores:
-// on Sapphire/Emerald Rapids the sweep is bound by its shuffles, one port's, and this saves one
-// in four of the stores' permutes; −7 to −8 % on gallbladder5400/10).
+// where the sweep is bound by its shuffles, which issue on one port, this saves one in four of
+// the stores' permutes).
 __attribute__((target("avx512f,avx512vl"))) inline void StorePair(__m512d record, double* x,
                                                                   const int32_t* offset, int a) {
   const __m256d unused = _mm256_setzero_pd();
   // The lower half is the register's own ymm (AVX512VL's encoding reaches ymm16–31; without it
-  // gcc extracts the half with a shuffle, 3–4 % of the sweep on Zen 4).
+  // gcc extracts the half with a shuffle, which the sweep would pay for).
   _mm256_mask_store_pd(x + offset[a], 0x7, __builtin_shufflevector(record, record, 0, 1, 2, 3));
   _mm256_mask_store_pd(x + offset[a + 4], 0x7, _mm512_mask_extractf64x4_pd(unused, 0xF, record, 1));
 }
@@ -138,8 +137,8 @@ __attribute__((target("avx512f,avx512vl"), always_inline)) inline void ProjectLa
   // 1/l from y0 = rsqrt14(l²) (relative error < 2^-14) by one third-order correction: with
   // r = 1 - l² y0², 1/l = y0 (1 - r)^(-1/2) = y0 (1 + r/2 + 3r²/8 + 5r³/16 + O(r⁴)), O(r⁴) <
   // 2^-56: as exact as two Newton steps. Summed as y0 + y0 r/2 + (y0 r) r (3/8 + 5r/16), the
-  // chain after r is three steps: the sweep is bound by this chain (one group of 8 per
-  // iteration instead of two is 20 % slower on Zen 4), not by the operation count.
+  // chain after r is three steps: the sweep is bound by this chain (hence two independent groups
+  // of 8 per iteration, docs/benchmarks.md), not by the operation count.
   __m512d y = _mm512_maskz_rsqrt14_pd(ok, l2);
   const __m512d r = _mm512_fnmadd_pd(l2, _mm512_mul_pd(y, y), one);
   const __m512d yr = _mm512_mul_pd(y, r);
