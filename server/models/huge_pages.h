@@ -1,13 +1,9 @@
 // Transparent huge pages for a model's large arrays (the explicit mass-spring pass's streams,
-// ring and window; the tissue state's positions and velocities). A pass over a million springs
-// walks a dozen arrays of megabytes and reads a ring and a window of ~1 MB at scattered places:
-// with 4 KiB pages that is hundreds of TLB entries, and under a hypervisor every miss is a
-// two-level page walk. One 2 MiB page covers 512 small ones (measured on the 53³ grid: see
-// docs/benchmarks.md, 2026-11-29).
-//
-// Linux only, and a request, not a guarantee: where the kernel has no transparent huge pages
-// (or gives none: `never` in /sys/kernel/mm/transparent_hugepage/enabled, no free 2 MiB frame)
-// the memory is ordinary and everything works the same, only slower.
+// ring and window; the tissue state's positions and velocities). A pass that walks megabytes of
+// arrays and reads a ring and a window at scattered places needs hundreds of 4 KiB TLB entries,
+// and under a hypervisor every miss is a two-level page walk; one 2 MiB page covers 512 small
+// ones (docs/benchmarks.md). Linux only, and a request: where the kernel gives no huge pages the
+// memory is ordinary and everything works the same, only slower.
 #pragma once
 
 #include <cstddef>

@@ -10,7 +10,7 @@
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
-#include "server/models/huge_pages.h"
+#include "server/models/mass_spring_slice_layout.h"
 #include "server/models/tissue_model.h"
 
 namespace somasim::models {
@@ -26,7 +26,7 @@ enum class MassSpringIntegrator {
   kSymplecticEuler,
   // Linearised backward Euler (Baraff & Witkin 1998): (M + dt C + dt² K) Δv = dt (f - dt K v),
   // solved by conjugate gradients preconditioned with a multicolour symmetric block
-  // Gauss–Seidel sweep (8 independent nodes per AVX-512 register; mass_spring_implicit.cc),
+  // Gauss–Seidel sweep (8 independent nodes per AVX-512 register; mass_spring_implicit_cg.cc),
   // matrix-free over the springs, started from Δv extrapolated from the last two steps. Stable
   // for stiff tissue at 1 ms. K keeps only the non-negative transverse stiffness
   // k (1 - l0/l)₊ so the system stays positive definite.
@@ -46,7 +46,7 @@ struct MassSpringParameters {
   MassSpringIntegrator integrator = MassSpringIntegrator::kSymplecticEuler;
   // Implicit: relative residual |r|/|b| at which CG stops, > 0. The step's own linearisation and
   // time-discretisation error is O(dt²); at 1e-6 an organ's trajectory stays within micrometres
-  // of an exact solve over hundreds of 1 ms steps (measured on gallbladder5400: 8 µm in 200).
+  // of an exact solve over hundreds of 1 ms steps (docs/benchmarks.md).
   double cg_tolerance = 1e-6;
   int cg_max_iterations = 500;  // implicit: CG iterations per step at most, > 0
   // Seed 001's generalised spring (eq. 10, SPEC §4.1): when > 0, every node with mass is tied to
@@ -113,10 +113,16 @@ class MassSpringModel final : public TissueModel {
   }
 
  private:
+  // The implicit step (mass_spring_implicit*.cc): the linear system at the state the step starts
+  // from (its kernels, MassSpringImplicitStep, read the spring arrays), then its CG solve into
+  // state->implicit_dv, which returns whether CG converged and sets the iterations it took.
   friend class MassSpringImplicitStep;
   void AdvanceImplicit(const StepInputs& inputs, TissueState* state) const;
-  // Implicit-step data and scratch (mass_spring_implicit.cc): called at the end of Build and by
-  // MakeState when the integrator is implicit.
+  void BuildImplicitSystem(const StepInputs& inputs, bool avx512, MassSpringState* state) const;
+  bool SolveImplicitSystem(const StepInputs& inputs, bool avx512, MassSpringState* state,
+                           int* iterations) const;
+  // Implicit-step data and scratch (mass_spring_implicit_layout.cc): called at the end of Build
+  // and by MakeState when the integrator is implicit.
   void BuildImplicitData();
   void SizeImplicitScratch(MassSpringState* state) const;
   // Adds gravity, external forces and attachments to state forces (after InternalForces).
@@ -135,69 +141,17 @@ class MassSpringModel final : public TissueModel {
   std::vector<double> inverse_mass_;
   std::vector<int32_t> spring_i_;  // num_springs, i < j
   std::vector<int32_t> spring_j_;
-  std::vector<double> rest_length_;  // [m]
-  std::vector<double> stiffness_;    // [N/m]
-  std::vector<double> damping_;      // [N s/m]
-  std::vector<int32_t>
-      first_node_start_;  // num_nodes + 1: springs [start_i, start_i+1) have i first
+  std::vector<double> rest_length_;         // [m]
+  std::vector<double> stiffness_;           // [N/m]
+  std::vector<double> damping_;             // [N s/m]
   std::vector<int32_t> node_spring_start_;  // num_nodes + 1, CSR of springs per node
   std::vector<int32_t> node_springs_;
   std::vector<int32_t> anchor_nodes_;   // nodes with a zero-rest-length spring to rest
   std::vector<double> anchor_damping_;  // d_i = 2 ζ √(k_s m_i) [N s/m], one per anchored node
   double anchor_stiffness_ = 0.0;       // k_s [N/m]
-  // --- explicit-step data (mass_spring_model.cc) ---
-  // The springs in the explicit pass's own layout (SELL-8): nodes go in slices of 8 consecutive
-  // nodes, one SIMD lane each; each spring belongs to the lane of its end in the earlier slice
-  // (either end when both share one) and sits in one column of its slice (8 lanes, at most one
-  // spring each): first the slice's run columns (one offset Δ = other node − lane node each, so
-  // lane l's other node is lane 0's + l; lanes without a spring of that Δ are empty), then its
-  // gathered ones.
-  void BuildExplicitLayout();
-  std::vector<int32_t> slice_column_start_;  // num_slices + 1: columns of each slice
-  // 8 per column: 3 × the lane's other node (a gathered column's empty lanes: 0; a run
-  // column's: the node lane 0's + l would be).
-  HugePageVector<int32_t> column_other3_;
-  HugePageVector<double> column_rest_;    // [m], 8 per column: l0 (0: empty)
-  HugePageVector<uint8_t> column_lanes_;  // 1 per column: bit l set when lane l has a spring
-  // num_slices: each slice's first gathered column (after its run columns).
-  std::vector<int32_t> slice_gathered_column_;
-  std::vector<int32_t> spring_slot_;  // num_springs: 8 × column + lane of each spring
-  // When the springs share few (k, d) pairs (BuildExplicitLayout decides): the pairs (k [N/m],
-  // d [N s/m] interleaved; pair 0 is (0, 0), for empty lanes and cut springs) and each spring's
-  // pair; the state then holds MassSpringState::column_material instead of
-  // column_stiffness_damping. Both empty otherwise.
-  static constexpr size_t kMaxMaterialPairs = 4096;  // 64 KiB of table
-  // What a gathered column (8 gathers of 8 lanes) costs the pass in run columns (24 + 24
-  // consecutive values, 12 permutes), as measured on the benchmark organs (BuildExplicitLayout).
-  static constexpr double kGatheredColumnCost = 2.0;
-  std::vector<double> material_kd_;
-  std::vector<uint16_t> spring_material_;
-  // With the pairs: each column's one pair when all its springs have it (cut ones have pair 0
-  // in the state), else 0.
-  HugePageVector<uint16_t> column_pair_;
-  // Each column's forces go to a ring (MassSpringState::column_forces) of ring_columns_ columns
-  // (24 doubles each: x of the 8 lanes, then y, then z) and one zero column after them (never
-  // written), whence the other nodes' slices take them: a slice's rotated incoming columns (one
-  // per Δ of run columns ending on it: lanes r..7 of one ring column and 0..r-1 of another, or
-  // of the zero column), then gathered ones (column k: each lane's k-th other spring).
-  int32_t ring_columns_ = 1;  // a power of two
-  // The AVX-512 pass reads the nodes' start-of-step x and v from a window of recent slices
-  // (MassSpringState::window: x, y, z, vx, vy, vz rows of 8 window_slices_ nodes, a node at
-  // its index mod 8 window_slices_, and a copy of the first 8 after the last), filled
-  // window_lead_ slices ahead: a run column's other nodes are then 6 loads, with no transpose.
-  int32_t window_slices_ = 1;  // a power of two >= window_lead_ + 2
-  int32_t window_lead_ = 0;    // slices: the farthest a run column reads past its own slice
-  // Per column: lane 0's other node mod 8 window_slices_ (a run column's place in the window).
-  HugePageVector<int32_t> column_window_;
-  std::vector<int32_t> slice_incoming_start_;  // num_slices + 1: incoming columns of each slice
-  // 8 per incoming column: rotated, the two ring columns' indices and r; gathered, each lane's
-  // ring index of the x.
-  HugePageVector<int32_t> incoming_slot_;
-  HugePageVector<uint8_t> incoming_lanes_;  // 1 per incoming column: lanes with a spring
-  // num_slices: each slice's first gathered incoming column (after its rotated ones).
-  std::vector<int32_t> slice_gathered_incoming_;
-  // --- end of explicit-step data ---
-  // --- implicit-step data (mass_spring_implicit.cc) ---
+  // The springs in the explicit slice pass's layout (mass_spring_slice_layout.h).
+  MassSpringSliceLayout layout_;
+  // --- implicit-step data (mass_spring_implicit_layout.cc) ---
   // Multicolour layout of the Gauss-Seidel preconditioner: nodes grouped by colour (no spring
   // joins two nodes of one colour), each colour padded to whole groups of 8 lanes. A lane is a
   // node's index in the solver's vectors (3 blocks x, y, z of implicit_padded_ doubles each).

@@ -28,22 +28,22 @@ class MassSpringState final : public TissueState {
   // stiffness and damping in the explicit layout (16 per column: k of the 8 lanes [N/m], then d
   // [N s/m]; 0 in empty lanes). MakeState and Cut keep them equal to the two vectors above.
   HugePageVector<double> column_stiffness_damping;
-  // Or, when the model's springs share few (k, d) pairs (MassSpringModel::material_kd_), each
+  // Or, when the model's springs share few (k, d) pairs (MassSpringSliceLayout::material_kd), each
   // lane's pair (8 per column; 0: (0, 0), an empty lane or a cut spring). Exactly one of the
   // two is non-empty.
   HugePageVector<uint16_t> column_material;
   // The lanes of each column (1 per column, bit l: lane l) whose spring is not cut: the model's
-  // (MassSpringModel::column_lanes_) less those Cut has removed.
+  // (MassSpringSliceLayout::column_lanes) less those Cut has removed.
   HugePageVector<uint8_t> column_lanes;
   // The ring of the latest columns' spring forces [N] (24 per column: x, y, z of the 8 lanes).
   // Scratch, also of InternalForces on a const state.
   mutable HugePageVector<double> column_forces;
   // The AVX-512 pass's window of the start-of-step x and v of recent slices (see
-  // MassSpringModel::window_slices_): 6 rows of 8 W + 8 values, and 8 to align them to 64 bytes.
-  // Scratch, also of InternalForces on a const state.
+  // MassSpringSliceLayout::window_slices): 6 rows of 8 W + 8 values, and 8 to align them to 64
+  // bytes. Scratch, also of InternalForces on a const state.
   mutable HugePageVector<double> window;
   // --- end of explicit-step scratch ---
-  // --- implicit-step scratch (mass_spring_implicit.cc) ---
+  // --- implicit-step scratch (mass_spring_implicit*.cc) ---
   // Per spring and one zero dummy spring past them (records of 8): w_s (x, y, z), a_s, K_s (v_i -
   // v_j) (x, y, z) and 0, the step's linearisation.
   std::vector<double> implicit_springs;

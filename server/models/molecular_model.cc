@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "common/checks/finite.h"
 #include "server/models/cpu_features.h"
 #include "server/models/particle_mesh.h"
 
@@ -31,32 +32,28 @@ class MolecularState final : public TissueState {
   mesh::Points forces;  // [N], 3 × num_nodes
 };
 
-void CheckFinite(double value, bool ok, const char* what) {
-  if (!ok || !std::isfinite(value)) {
-    throw std::invalid_argument(std::string("molecular: ") + what);
-  }
+void Require(bool ok, const char* what) {
+  if (!ok) throw std::invalid_argument(std::string("molecular: ") + what);
 }
 
 void CheckParameters(const MolecularParameters& p) {
   if (!(p.bond_stiffness > 0.0)) {
-    CheckFinite(p.youngs_modulus, p.youngs_modulus > 0.0,
-                "youngs_modulus [Pa] must be a finite value > 0");
+    Require(checks::FinitePositive(p.youngs_modulus),
+            "youngs_modulus [Pa] must be a finite value > 0");
   }
   if (!(p.node_mass > 0.0)) {
-    CheckFinite(p.density, p.density > 0.0, "density [kg/m^3] must be a finite value > 0");
+    Require(checks::FinitePositive(p.density), "density [kg/m^3] must be a finite value > 0");
   }
-  CheckFinite(p.damping_ratio, p.damping_ratio >= 0.0, "damping_ratio must be finite and >= 0");
-  CheckFinite(p.thickness, p.thickness > 0.0, "thickness [m] must be a finite value > 0");
-  CheckFinite(p.bend_factor, p.bend_factor >= 0.0, "bend_factor must be finite and >= 0");
-  CheckFinite(p.stretch_bend_factor, true, "stretch_bend_factor must be finite");
-  CheckFinite(p.bond_stiffness, p.bond_stiffness >= 0.0,
-              "bond_stiffness [N/m] must be finite and >= 0");
-  CheckFinite(p.angle_stiffness, p.angle_stiffness >= 0.0,
-              "angle_stiffness [J] must be finite and >= 0");
-  CheckFinite(p.stretch_bend_stiffness, p.stretch_bend_stiffness >= 0.0,
-              "stretch_bend_stiffness [N] must be finite and >= 0");
-  CheckFinite(p.node_mass, p.node_mass >= 0.0, "node_mass [kg] must be finite and >= 0");
-  CheckFinite(p.speed_limit, p.speed_limit > 0.0, "speed_limit [m/s] must be a finite value > 0");
+  checks::RequireFiniteNonNegative("molecular", "damping_ratio", p.damping_ratio);
+  Require(checks::FinitePositive(p.thickness), "thickness [m] must be a finite value > 0");
+  checks::RequireFiniteNonNegative("molecular", "bend_factor", p.bend_factor);
+  Require(std::isfinite(p.stretch_bend_factor), "stretch_bend_factor must be finite");
+  checks::RequireFiniteNonNegative("molecular", "bond_stiffness [N/m]", p.bond_stiffness);
+  checks::RequireFiniteNonNegative("molecular", "angle_stiffness [J]", p.angle_stiffness);
+  checks::RequireFiniteNonNegative("molecular", "stretch_bend_stiffness [N]",
+                                   p.stretch_bend_stiffness);
+  checks::RequireFiniteNonNegative("molecular", "node_mass [kg]", p.node_mass);
+  Require(checks::FinitePositive(p.speed_limit), "speed_limit [m/s] must be a finite value > 0");
 }
 
 // The geometry of one bond angle: bonds a = x_p - x_c and b = x_q - x_c, their lengths and unit

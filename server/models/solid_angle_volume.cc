@@ -9,6 +9,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "common/checks/finite.h"
+
 namespace somasim::models {
 namespace {
 
@@ -34,7 +36,7 @@ std::string Str(double value) {
 }
 
 void CheckParameter(double value, const char* name) {
-  if (!(value >= 0.0) || !std::isfinite(value)) {
+  if (!checks::FiniteNonNegative(value)) {
     Fail(std::string(name) + " must be finite and >= 0 (got " + Str(value) + ")");
   }
 }

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstring>
 
+#include "common/checks/finite.h"
 #include "server/models/cpu_features.h"
 #include "server/models/huge_pages.h"
 
@@ -154,7 +155,7 @@ void TissueModel::CheckWholeState(TissueState* state) const {
 StepStatus TissueModel::Step(const StepInputs& inputs, TissueState* state) const {
   const int32_t n = num_nodes();
   const auto in_range = [n](int32_t node) { return node >= 0 && node < n; };
-  bool ok = inputs.dt > 0.0 && std::isfinite(inputs.dt) && inputs.gravity.allFinite();
+  bool ok = checks::FinitePositive(inputs.dt) && inputs.gravity.allFinite();
   if (inputs.external_forces != nullptr) {
     ok = ok && inputs.external_forces->cols() == n &&
          ValuesFinite(inputs.external_forces->data(),
@@ -169,8 +170,7 @@ StepStatus TissueModel::Step(const StepInputs& inputs, TissueState* state) const
          inputs.prescribed_positions->allFinite();
   }
   for (const Attachment& a : inputs.attachments) {
-    ok = ok && in_range(a.node) && a.target.allFinite() && a.stiffness >= 0.0 &&
-         std::isfinite(a.stiffness);
+    ok = ok && in_range(a.node) && a.target.allFinite() && checks::FiniteNonNegative(a.stiffness);
   }
   if (!ok) {
     ++state->counters.bad_inputs;

@@ -22,7 +22,7 @@
 
 namespace somasim::models {
 
-// Defined in mass_spring_model.cc: false makes the explicit pass take its scalar path.
+// Defined in mass_spring_slice_pass.cc: false makes the explicit pass take its scalar path.
 void SetMassSpringAvx512ForTesting(bool enabled);
 // Defined in mass_spring_model.cc: whether the state keeps each spring's (k, d) as an index into
 // the model's table of distinct pairs (instead of k and d themselves).

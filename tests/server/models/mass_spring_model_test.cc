@@ -632,7 +632,7 @@ TEST(MassSpringModel, BadParametersAreRefusedNamingThem) {
   EXPECT_NO_THROW(MassSpringModel::FromEdges(two, {{0, 1}}, raw));
 }
 
-// Implicit Euler solver (mass_spring_implicit.cc): the preconditioned, warm-started CG step is
+// Implicit Euler solver (mass_spring_implicit*.cc): the preconditioned, warm-started CG step is
 // the linearised backward Euler step of Baraff & Witkin 1998, solved to the tolerance.
 
 // A 3 × 3 × 2 lattice of nodes 1 cm apart with springs to every neighbour within √3 cells,
