@@ -17,8 +17,8 @@ void ArmDevice::Stop(uint64_t heartbeat) {
   somasim_arm_command_t last{};
   timespec ts{};
   clock_gettime(CLOCK_MONOTONIC, &ts);
-  last.node_time_ns = static_cast<uint64_t>(ts.tv_sec) * 1000000000U +
-                      static_cast<uint64_t>(ts.tv_nsec);
+  last.node_time_ns =
+      static_cast<uint64_t>(ts.tv_sec) * 1000000000U + static_cast<uint64_t>(ts.tv_nsec);
   last.heartbeat = heartbeat;
   last.num_joints = block_.num_joints();
   if (block_.HeaderProblem() == nullptr) arm_shm::WriteCommand(&block_.block().command, last);

@@ -31,7 +31,8 @@ const char* HapticLoop::fault_reason() const {
 
 const char* CartesianStateProblem(const CartesianState& s) {
   const Eigen::Vector3d p(s.position[0], s.position[1], s.position[2]);
-  if (!p.allFinite() || p.norm() > 10.0) return "the device's position is not finite or beyond 10 m";
+  if (!p.allFinite() || p.norm() > 10.0)
+    return "the device's position is not finite or beyond 10 m";
   const Eigen::Vector4d q(s.orientation[0], s.orientation[1], s.orientation[2], s.orientation[3]);
   if (!q.allFinite() || std::abs(q.norm() - 1.0) > 1e-3) {
     return "the device's orientation is not a unit quaternion";
@@ -67,8 +68,7 @@ const char* HapticLoop::CheckDevice(const HapticLoopInput& in, bool* have_state)
     }
   }
   if (*have_state) {
-    const uint64_t heartbeat =
-        kinematics_ != nullptr ? in.state.heartbeat : in.cartesian.heartbeat;
+    const uint64_t heartbeat = kinematics_ != nullptr ? in.state.heartbeat : in.cartesian.heartbeat;
     if (!seen_heartbeat_ || heartbeat != last_heartbeat_) {
       if (seen_heartbeat_) phase_ = LoopPhase::kRunning;  // the device is alive
       seen_heartbeat_ = true;

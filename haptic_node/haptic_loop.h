@@ -118,8 +118,8 @@ class HapticLoop {
   const ToolPoseSample& tool() const { return tool_; }
   bool clutched() const { return clutched_; }
   const Eigen::Vector3d& scene_force() const { return scene_force_; }  // [N] the model's
-  const Eigen::Vector3d& arm_force() const { return arm_force_; }  // [N] rendered, device frame
-  const Eigen::Vector3d& arm_velocity() const { return velocity_; }  // [m/s] filtered
+  const Eigen::Vector3d& arm_force() const { return arm_force_; }      // [N] rendered, device frame
+  const Eigen::Vector3d& arm_velocity() const { return velocity_; }    // [m/s] filtered
   // This tick's model said the tool touches (and is below its plane) or grasps.
   bool in_contact() const { return in_contact_; }
   bool grasping() const { return grasping_; }

@@ -252,14 +252,13 @@ void WriteForces(NodeShared& shared, const NodeOptions& o, std::ofstream* out) {
     const std::string& tool = r.tool < o.tools.size() ? o.tools[r.tool] : o.tools.front();
     *out << r.time << ',' << tool << ',' << r.position[0] << ',' << r.position[1] << ','
          << r.position[2] << ',' << r.force[0] << ',' << r.force[1] << ',' << r.force[2] << ','
-         << (r.in_contact ? 1 : 0) << ',' << (r.grasping ? 1 : 0) << ',' << r.model_age_ms
-         << '\n';
+         << (r.in_contact ? 1 : 0) << ',' << (r.grasping ? 1 : 0) << ',' << r.model_age_ms << '\n';
   }
 }
 
-nlohmann::ordered_json Report(const NodeOptions& o, const NodeShared& shared,
-                              const LoopTiming& lt, const Wire& wire,
-                              const app::RealtimeResult& locked, double wall, bool lost) {
+nlohmann::ordered_json Report(const NodeOptions& o, const NodeShared& shared, const LoopTiming& lt,
+                              const Wire& wire, const app::RealtimeResult& locked, double wall,
+                              bool lost) {
   const LoopStatus& s = shared.status;
   nlohmann::ordered_json r;
   r["device"] = o.device;

@@ -53,8 +53,8 @@ int64_t MonotonicNs() {
   return static_cast<int64_t>(ts.tv_sec) * 1000000000 + ts.tv_nsec;
 }
 
-void RunLoopThread(const LoopThreadOptions& o, Device& device, HapticLoop& loop,
-                   NodeShared& shared, LoopTiming& timing) {
+void RunLoopThread(const LoopThreadOptions& o, Device& device, HapticLoop& loop, NodeShared& shared,
+                   LoopTiming& timing) {
   if (o.rt_priority > 0) timing.fifo = app::SetFifoScheduling(o.rt_priority);
   if (!timing.fifo.applied) app::SetSchedulerSlice(app::kWireSlice);
   // Before the loop: its stack touched, so no page faults on it later.

@@ -8,15 +8,15 @@
 #include <cmath>
 #include <iterator>
 
+#include "common/force_model/force_model_wire.h"
 #include "common/wire/mesh_frame_view.h"
 #include "idl/scene.pb.h"
-#include "common/force_model/force_model_wire.h"
 
 namespace somasim::viewer {
 
 namespace {
 
-constexpr size_t kMaxMessages = 8;    // scenario messages kept for the heads-up display
+constexpr size_t kMaxMessages = 8;  // scenario messages kept for the heads-up display
 
 // Silences protobuf's parse errors: a scene text the viewer cannot read only costs it the
 // grasp radii (their defaults stay).

@@ -19,8 +19,8 @@
 #include <vector>
 
 #include "common/dds/topics.h"
-#include "common/wire/frame_codec.h"
 #include "common/force_model/local_force_model.h"
+#include "common/wire/frame_codec.h"
 
 namespace somasim::viewer {
 

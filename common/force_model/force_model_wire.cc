@@ -52,8 +52,7 @@ std::string FromWire(const somasim_wire_ForceModel& w, uint32_t format_version,
 std::string HeldNodesFromWire(const somasim_wire_ForceModel& w, uint32_t num_nodes,
                               std::vector<uint32_t>* nodes) {
   if (w.num_held > kMaxHeldNodes) {
-    return "num_held " + std::to_string(w.num_held) + " is over " +
-           std::to_string(kMaxHeldNodes);
+    return "num_held " + std::to_string(w.num_held) + " is over " + std::to_string(kMaxHeldNodes);
   }
   for (uint32_t i = 0; i < w.num_held; ++i) {
     if (w.held_nodes[i] >= num_nodes) {

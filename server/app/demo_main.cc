@@ -63,8 +63,7 @@ int ParseOptions(int argc, char** argv, DemoOptions* o) {
       ->capture_default_str();
   cli.add_option("--out", o->out_dir, "folder for logs, forces and the report")
       ->capture_default_str();
-  cli.add_option("--dds-config", o->dds_config, "Cyclone DDS configuration")
-      ->capture_default_str();
+  cli.add_option("--dds-config", o->dds_config, "Cyclone DDS configuration")->capture_default_str();
   cli.add_option("--domain", o->domain, "DDS domain id")->check(CLI::Range(0, 232));
   cli.add_flag("--arm", o->arm,
                "drive the session with an arm: somasim-haptic --device shm and the emulated arm "
@@ -112,10 +111,9 @@ void StartServerAndNode(const DemoOptions& o, const fs::path& bin, const fs::pat
                                           "--report",
                                           (out / "haptic_report.json").string()};
   if (o.arm) {
-    for (const std::string& a : {std::string("--device"), std::string("shm"),
-                                 std::string("--tool"), std::string("probe"),
-                                 std::string("--arm"), arm_name, std::string("--arm-config"),
-                                 o.arm_config}) {
+    for (const std::string& a :
+         {std::string("--device"), std::string("shm"), std::string("--tool"), std::string("probe"),
+          std::string("--arm"), arm_name, std::string("--arm-config"), o.arm_config}) {
       haptic_args.push_back(a);
     }
   } else {
@@ -126,8 +124,8 @@ void StartServerAndNode(const DemoOptions& o, const fs::path& bin, const fs::pat
       haptic_args.push_back(a);
     }
   }
-  p->haptic = std::make_unique<somasim::app::ChildProcess>(haptic_args,
-                                                           (out / "haptic.log").string());
+  p->haptic =
+      std::make_unique<somasim::app::ChildProcess>(haptic_args, (out / "haptic.log").string());
   p->arm_rc = o.arm ? -1 : 0;
 }
 

@@ -20,8 +20,8 @@ nlohmann::ordered_json ServerReport(const ServerOptions& options, uint64_t serve
   r["organ_steps"] = session.organ_steps();
   r["rejected_steps"] = session.rejected_steps();
   r["step_time_us"] = {
-      {"mean", total.count() > 0 ? runner.total_sum_us() / static_cast<double>(total.count())
-                                 : 0.0},
+      {"mean",
+       total.count() > 0 ? runner.total_sum_us() / static_cast<double>(total.count()) : 0.0},
       {"p50", total.Quantile(0.5)},
       {"p90", total.Quantile(0.9)},
       {"p99", total.Quantile(0.99)},

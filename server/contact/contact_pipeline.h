@@ -20,9 +20,9 @@
 
 #include "common/mesh/mesh_types.h"
 #include "server/contact/aabb_tree.h"
+#include "server/contact/force_model_maker.h"
 #include "server/contact/god_object.h"
 #include "server/contact/grasp.h"
-#include "server/contact/force_model_maker.h"
 #include "server/contact/tissue_compliance.h"
 #include "server/contact/tool.h"
 #include "server/models/tissue_model.h"

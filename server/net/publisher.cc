@@ -144,7 +144,8 @@ void Publisher::PublishTopologies() {
     const organs::BuiltOrgan& b = session_.organ(k).built;
     mesh::Triangles triangles = b.triangles;
     std::vector<uint8_t> inner(static_cast<size_t>(b.triangles.cols()), 0);
-    if (surface_cutters_[i]) surface_cutters_[i]->ExtractSurface(snapshot.alive, &triangles, &inner);
+    if (surface_cutters_[i])
+      surface_cutters_[i]->ExtractSurface(snapshot.alive, &triangles, &inner);
     published_version_[i] = snapshot.version;
     PublishTopology(k, snapshot.version, snapshot.rest, triangles, inner);
     encoders_[i]->ForceKeyframe();
@@ -352,8 +353,7 @@ void Publisher::PublishSessionEvent(const SessionEventRecord& e) {
   }
   if (e.kind == Kind::kCut) text += " (" + std::to_string(e.detail) + " removed)";
   if (e.kind == Kind::kStepRejected) {
-    text += std::string(" (") +
-            models::StepStatusName(static_cast<models::StepStatus>(e.detail)) +
+    text += std::string(" (") + models::StepStatusName(static_cast<models::StepStatus>(e.detail)) +
             "; the organ was restored to its last good step)";
   }
   ++event_counts_[EventText(e.kind)];
@@ -396,8 +396,8 @@ void Publisher::TakeInstructorCommands() {
         PublishEvent(10, who, text);
         break;
       default:
-        PublishEvent(
-            1, who, "instructor command " + std::to_string(c.kind) + " is not supported; ignored");
+        PublishEvent(1, who,
+                     "instructor command " + std::to_string(c.kind) + " is not supported; ignored");
         break;
     }
   });
@@ -413,7 +413,8 @@ void Publisher::ReportRunnerNotices() {
   }
   if (!fast_forward_reported_ && c.fast_forwarded.load()) {
     fast_forward_reported_ = true;
-    Log(LogLevel::kInfo, "replay_from", {{"sim_time", c.sim_time.load()}, {"step", c.ticks.load()}});
+    Log(LogLevel::kInfo, "replay_from",
+        {{"sim_time", c.sim_time.load()}, {"step", c.ticks.load()}});
   }
   if (replay_ != nullptr && !divergence_reported_ && c.replay_diverged.load()) {
     divergence_reported_ = true;

@@ -25,20 +25,20 @@ namespace somasim::net {
 
 struct PublisherOptions {
   std::string session;
-  double frame_rate = 60.0;          // [Hz]
-  uint32_t keyframe_interval = 30;   // a keyframe every this many frames
-  bool verbose = false;              // log the metrics every second
-  std::string record;                // the recording's file, for its failure's message
-  std::string software_version;      // in the session description
+  double frame_rate = 60.0;         // [Hz]
+  uint32_t keyframe_interval = 30;  // a keyframe every this many frames
+  bool verbose = false;             // log the metrics every second
+  std::string record;               // the recording's file, for its failure's message
+  std::string software_version;     // in the session description
 };
 
 class Publisher {
  public:
   // Everything given outlives the publisher. `recorder` (or null) records instructor commands;
   // `replay` (or null): a replay, which instructors cannot reset.
-  Publisher(const PublisherOptions& options, runner::PhysicsRunner& runner,
-            Endpoints& endpoints, const ToolLink& link, uint64_t server_id,
-            runner::Recorder* recorder, runner::RecordedInputs* replay);
+  Publisher(const PublisherOptions& options, runner::PhysicsRunner& runner, Endpoints& endpoints,
+            const ToolLink& link, uint64_t server_id, runner::Recorder* recorder,
+            runner::RecordedInputs* replay);
 
   // The session description, every topology, the heartbeat "running" and the event "session
   // starts". Throws dds::DdsError.

@@ -24,16 +24,16 @@
 #include <set>
 #include <sstream>
 
-#include "common/app/exit_codes.h"
 #include "common/app/blas_kernels.h"
+#include "common/app/exit_codes.h"
 #include "common/mesh/topology.h"
 #include "common/mesh_io/mesh_error.h"
 #include "common/scene/scene.h"
-#include "server/reduce/builder.h"
-#include "server/reduce/evaluate.h"
 #include "server/organs/file_errors.h"
 #include "server/organs/organ_builder.h"
 #include "server/organs/reduced_file.h"
+#include "server/reduce/builder.h"
+#include "server/reduce/evaluate.h"
 
 #ifndef SOMASIM_VERSION
 #define SOMASIM_VERSION "unknown"
@@ -195,8 +195,8 @@ int ParseArgs(int argc, char** argv, Args* a) {
       "from its full FEM model, by the scene's sampling plan (its reduction block)"};
   app.add_option("scene", a->scene, "Scene file (*.scene.txtpb) with a reduction block")
       ->required();
-  auto* out_option =
-      app.add_option("--out", a->out_file, "The reduced model to write (*.somared; must not exist)");
+  auto* out_option = app.add_option("--out", a->out_file,
+                                    "The reduced model to write (*.somared; must not exist)");
   app.add_option("--nonlinear-out", a->nonlinear_file,
                  "Also write the nonlinear reduced model (ECSW) made from the same snapshots "
                  "(*.somared; must not exist; hyperelastic organs)")

@@ -29,8 +29,8 @@
 
 namespace somasim::runner {
 
-using server::Recorder;
 using server::RecordedInputs;
+using server::Recorder;
 using server::Session;
 using server::SessionEventRecord;
 using server::ToolCommandInput;
@@ -99,7 +99,7 @@ struct RunnerCounters {
   std::atomic<uint64_t> ticks{0};           // Session::Step calls (the recording's step count)
   std::atomic<uint64_t> behind{0};          // times the physics fell > 0.5 s behind real time
   std::atomic<uint64_t> commands_applied{0};
-  std::atomic<uint64_t> events_dropped{0};  // the event ring was full
+  std::atomic<uint64_t> events_dropped{0};   // the event ring was full
   std::atomic<bool> replay_diverged{false};  // replay: the recording's inputs diverged
   std::atomic<bool> fast_forwarded{false};   // replay: --from reached, publishing from here
   std::atomic<double> sim_time{0.0};

@@ -31,9 +31,9 @@
 #include <string_view>
 #include <vector>
 
+#include "common/force_model/local_force_model.h"
 #include "common/scene/scene.h"
 #include "server/contact/contact_pipeline.h"
-#include "common/force_model/local_force_model.h"
 #include "server/contact/rigid_body.h"
 #include "server/cutting/tet_cutter.h"
 #include "server/organs/organ_builder.h"

@@ -10,8 +10,8 @@
 #include <filesystem>
 #include <iostream>
 
-#include "common/app/exit_codes.h"
 #include "common/app/blas_kernels.h"
+#include "common/app/exit_codes.h"
 #include "common/mesh_io/mesh_error.h"
 #include "common/scene/scene.h"
 #include "server/organs/file_errors.h"

@@ -20,10 +20,10 @@
 #include <vector>
 
 #include "common/arm_shm/arm_shm.h"
+#include "common/force_model/local_force_model.h"
+#include "common/lockfree/latest_slot.h"
 #include "haptic_node/haptic_loop.h"
 #include "haptic_node/kinematics.h"
-#include "common/lockfree/latest_slot.h"
-#include "common/force_model/local_force_model.h"
 
 namespace somasim::haptic {
 namespace {

@@ -204,7 +204,8 @@ TEST(ArmSimProgram, TorqueGoesToZeroWithin20MillisecondsOfTheNodesLastWrite) {
   std::unique_ptr<arm_shm::ArmBlock> block = AttachWhenMade(name);
   ASSERT_TRUE(block) << testing::ReadText(dir + "/sim.log");
   somasim_arm_state_t state{};
-  for (int i = 0; i < 300 && arm_shm::ReadState(block->block().state, &state) != arm_shm::ReadResult::kOk;
+  for (int i = 0;
+       i < 300 && arm_shm::ReadState(block->block().state, &state) != arm_shm::ReadResult::kOk;
        ++i) {
     std::this_thread::sleep_for(milliseconds(1));
   }

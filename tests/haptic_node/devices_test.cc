@@ -76,9 +76,9 @@ TEST(ScriptDevice, DrivesTheSameTickAsAnArmFromItsPoseToTheRenderedForce) {
   EXPECT_EQ(r.loop.phase(), LoopPhase::kRunning);
   EXPECT_EQ(r.loop.tool().valid, 1u);
   EXPECT_EQ(r.loop.tool().tool, 0u);  // the probe
-  EXPECT_EQ(Vector3d(r.loop.tool().position[0], r.loop.tool().position[1],
-                     r.loop.tool().position[2]),
-            Vector3d(0, 0, 0.05));
+  EXPECT_EQ(
+      Vector3d(r.loop.tool().position[0], r.loop.tool().position[1], r.loop.tool().position[2]),
+      Vector3d(0, 0, 0.05));
   // Out of contact until engaged, then pressed 5 mm: 300 N/m × 5 mm = 1.5 N up, reached over
   // the engagement ramp.
   const Vector3d p(0, 0, 0.05);

@@ -2,8 +2,6 @@
 // server/contact/force_model_maker.h): consistency with the server's force, the
 // series-stiffness law, unilateral frictionless contact, damping, the clamp, and boundedness for
 // any model whatever its bits (SPEC §7: NaN/Inf never reaches the arm).
-#include "server/contact/force_model_maker.h"
-
 #include <gtest/gtest.h>
 
 #include <Eigen/Geometry>
@@ -19,6 +17,7 @@
 #include <string>
 #include <vector>
 
+#include "server/contact/force_model_maker.h"
 #include "tests/support/allocation_counter.h"
 
 namespace somasim::contact {
@@ -252,9 +251,8 @@ TEST(LocalForceModel, NonFiniteModelOrDeviceStateGivesZeroForceFlaggedInvalid) {
       // LocalForceModelError refuses the model all the same.
       EXPECT_NE(LocalForceModelError(model), nullptr) << "field " << k;
       const double* field = Doubles(&model)[k];
-      const bool display_only =
-          field == &model.sim_time ||
-          (field >= model.tissue_stiffness && field < model.tissue_stiffness + 9);
+      const bool display_only = field == &model.sim_time || (field >= model.tissue_stiffness &&
+                                                             field < model.tissue_stiffness + 9);
       if (display_only) continue;
       EXPECT_TRUE(s.invalid) << "field " << k;
       EXPECT_EQ(s.force, Vector3d::Zero()) << "field " << k;
@@ -352,7 +350,8 @@ TEST(LocalForceModel, MakingAndEvaluatingAllocateNothing) {
   const LocalForceModel model = GoodModel();
   std::vector<Vector3d> xs;
   xs.reserve(64);
-  for (int i = 0; i < 64; ++i) xs.push_back(Vec(model.contact_point) + 1e-4 * (i - 32) * Vec(model.normal));
+  for (int i = 0; i < 64; ++i)
+    xs.push_back(Vec(model.contact_point) + 1e-4 * (i - 32) * Vec(model.normal));
   Vector3d sum = Vector3d::Zero();
   {
     somasim::testing::AllocationCounter counter;
@@ -395,8 +394,8 @@ TEST(LocalForceModelError, NamesEachBadFieldAndAcceptsGoodModels) {
                   "tissue_stiffness is not finite"));
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->damping = kNaN; }), "damping"));
   EXPECT_TRUE(has(error_of([](LocalForceModel* m) { m->force_limit = kInf; }), "force_limit"));
-  EXPECT_TRUE(
-      has(error_of([](LocalForceModel* m) { Vec(m->normal) *= 1.001; }), "normal is not a unit vector"));
+  EXPECT_TRUE(has(error_of([](LocalForceModel* m) { Vec(m->normal) *= 1.001; }),
+                  "normal is not a unit vector"));
   // Out of contact the normal is not used: its length does not matter.
   EXPECT_EQ(error_of([](LocalForceModel* m) {
               m->in_contact = false;

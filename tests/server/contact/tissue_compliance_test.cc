@@ -34,7 +34,6 @@ namespace {
 
 using force_model::EvaluateLocalForceModel;
 using force_model::ForceSample;
-using force_model::LocalForceModelError;
 
 using Eigen::Matrix3d;
 using Eigen::Vector3d;

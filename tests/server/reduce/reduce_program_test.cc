@@ -14,8 +14,8 @@
 #include <vector>
 
 #include "common/mesh_gen/builtin_organs.h"
-#include "server/reduce/builder.h"
 #include "server/organs/reduced_file.h"
+#include "server/reduce/builder.h"
 #include "tests/support/mesh_fixtures.h"
 #include "tests/support/run_program.h"
 #include "tests/support/sanitizer.h"

@@ -121,8 +121,8 @@ TEST(PhysicsRunner, ACutHandsOnTheNewTopologyAndAResetTheOld) {
   ASSERT_TRUE(r.runner->topology(0).Take());
   const TopologySnapshot& t = r.runner->topology(0).front();
   EXPECT_EQ(t.version, r.session.organ(0).topology_version);
-  EXPECT_TRUE(std::equal(t.alive.begin(), t.alive.end(),
-                         r.session.organ(0).cutter->alive_flags().begin()));
+  EXPECT_TRUE(
+      std::equal(t.alive.begin(), t.alive.end(), r.session.organ(0).cutter->alive_flags().begin()));
   EXPECT_LT(std::count(t.alive.begin(), t.alive.end(), uint8_t{1}),
             static_cast<long>(t.alive.size()));
 }

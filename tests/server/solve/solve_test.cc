@@ -29,7 +29,6 @@ namespace {
 using organs::BuildOrgan;
 using organs::BuiltOrgan;
 using organs::HistoryScale;
-using organs::PressureForces;
 using organs::UnheldParts;
 
 constexpr double kLength = 0.1, kWidth = 0.02;  // [m] the test bar
