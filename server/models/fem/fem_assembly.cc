@@ -6,6 +6,7 @@
 #include <cstdint>
 
 #include "server/models/fem/fem_model.h"
+#include "server/models/fem/fem_model_internal.h"
 
 namespace somasim::models::fem {
 namespace {
@@ -82,9 +83,7 @@ void FemModel::AssembleWarped(const Shape& sh, const mesh::Points& x, const doub
       }
       continue;
     }
-    // R K_ab Rᵀ = V (λ r_a r_bᵀ + μ r_b r_aᵀ + μ (r_a·r_b) I) with the rotated gradients
-    // r_a = R ∇N_a (RestBlock's formula in the rotated frame; r_a·r_b = ∇N_a·∇N_b): 16 outer
-    // products instead of 32 3×3 matrix products.
+    // R K_ab Rᵀ from the rotated gradients r_a = R ∇N_a (AddWarpedElementBlocks).
     const double* rot = rotations + 9 * static_cast<size_t>(e);  // column-major
     const double* grad = sh.gradients.data() + 12 * static_cast<size_t>(e);
     double r[4][3];
@@ -94,22 +93,8 @@ void FemModel::AssembleWarped(const Shape& sh, const mesh::Points& x, const doub
     }
     const double v = scale * sh.volumes[static_cast<size_t>(e)];
     const double cl = v * lambda_, cm = v * mu_;
-    for (int a = 0; a < 4; ++a) {
-      for (int b = 0; b < 4; ++b) {
-        const double* ga = grad + 3 * a;
-        const double* gb = grad + 3 * b;
-        const int32_t block = matrix->element_block(e, a, b);
-        if (block < 0) continue;  // upper storage: the transpose of (b, a)
-        const double diagonal = cm * (ga[0] * gb[0] + ga[1] * gb[1] + ga[2] * gb[2]);
-        double* out = matrix->block(block).data();
-        for (int c = 0; c < 3; ++c) {
-          for (int i = 0; i < 3; ++i) {
-            out[3 * c + i] += cl * r[a][i] * r[b][c] + cm * r[b][i] * r[a][c];
-          }
-          out[4 * c] += diagonal;
-        }
-      }
-    }
+    internal::AddWarpedElementBlocks(matrix->element_blocks() + 16 * static_cast<size_t>(e), grad,
+                                     r, cl, cm, matrix->values());
   }
   for (int32_t i = 0; i < num_nodes(); ++i) {
     matrix->block(matrix->diagonal_block(i)).diagonal().array() +=
@@ -119,15 +104,16 @@ void FemModel::AssembleWarped(const Shape& sh, const mesh::Points& x, const doub
 
 void FemModel::AssembleTangent(const mesh::Points& x, BlockSparseMatrix* matrix) const {
   if (matrix->num_blocks() != pattern_.num_blocks()) *matrix = pattern_;
-  AssembleExact(ModelShape(), x, matrix, nullptr);
+  AssembleElementTangents(ModelShape(), x, true, nullptr, matrix);
 }
 
-void FemModel::AssembleExact(const Shape& sh, const mesh::Points& x, BlockSparseMatrix* matrix,
-                             const ViscousStep* viscous) const {
+void FemModel::AssembleElementTangents(const Shape& sh, const mesh::Points& x, bool exact,
+                                       const ViscousStep* viscous,
+                                       BlockSparseMatrix* matrix) const {
   matrix->SetZero();
   for (int32_t e = 0; e < num_tets(); ++e) {
     if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
-    const Eigen::Matrix<double, 12, 12> ke = ElementTangentOf(sh, x, e, true, viscous);
+    const Eigen::Matrix<double, 12, 12> ke = ElementTangentOf(sh, x, e, exact, viscous);
     for (int a = 0; a < 4; ++a) {
       for (int b = 0; b < 4; ++b) {
         matrix->block(matrix->element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);

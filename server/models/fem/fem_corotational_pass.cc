@@ -9,6 +9,7 @@
 
 #include "server/models/cpu_features.h"
 #include "server/models/fem/fem_model.h"
+#include "server/models/fem/fem_model_internal.h"
 #include "server/models/fem/polar_avx512.h"
 
 namespace somasim::models::fem {
@@ -135,25 +136,8 @@ void ElementPass(const WarpedPass& a) {
   for (size_t e = 0; e < a.num_tets; ++e) {
     double r[4][3], cl, cm;
     ElementForcesAndGradients(a, e, r, &cl, &cm);
-    const double* grad = a.gradients + 12 * e;
-    // The warped blocks as AssembleWarped: R K_ab Rᵀ = V (λ r_a r_bᵀ + μ r_b r_aᵀ + μ (∇N_a·∇N_b)
-    // I).
-    for (int c0 = 0; c0 < 4; ++c0) {
-      for (int b = 0; b < 4; ++b) {
-        const int32_t block = a.element_blocks[16 * e + static_cast<size_t>(4 * c0 + b)];
-        if (block < 0) continue;  // upper storage: the transpose of (b, a)
-        const double* ga = grad + 3 * c0;
-        const double* gb = grad + 3 * b;
-        const double diagonal = cm * (ga[0] * gb[0] + ga[1] * gb[1] + ga[2] * gb[2]);
-        double* out = a.values + 9 * static_cast<size_t>(block);
-        for (int c = 0; c < 3; ++c) {
-          for (int i = 0; i < 3; ++i) {
-            out[3 * c + i] += cl * r[c0][i] * r[b][c] + cm * r[b][i] * r[c0][c];
-          }
-          out[4 * c] += diagonal;
-        }
-      }
-    }
+    internal::AddWarpedElementBlocks(a.element_blocks + 16 * e, a.gradients + 12 * e, r, cl, cm,
+                                     a.values);
   }
 }
 

@@ -291,9 +291,9 @@ class FemModel final : public TissueModel {
   void AssembleWarped(const Shape& sh, const mesh::Points& x, const double* rotations, double scale,
                       double mass_scale, BlockSparseMatrix* matrix,
                       const ViscousStep* viscous = nullptr) const;
-  // Σ_e ElementTangent(x, e, true, viscous) into `matrix` (zeroed first).
-  void AssembleExact(const Shape& sh, const mesh::Points& x, BlockSparseMatrix* matrix,
-                     const ViscousStep* viscous) const;
+  // Σ_e ElementTangent(x, e, exact, viscous) into `matrix` (zeroed first).
+  void AssembleElementTangents(const Shape& sh, const mesh::Points& x, bool exact,
+                               const ViscousStep* viscous, BlockSparseMatrix* matrix) const;
   // Linear and corotational Step: ElasticForces and AssembleWarped fused into one pass over the
   // elements (equal up to rounding), each rotation warm-started from `quaternions` (4 × num_tets:
   // the last step's, updated). With AVX-512 the corotational kind does F, R, forces and blocks

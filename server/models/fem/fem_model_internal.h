@@ -1,5 +1,6 @@
-// What FemModel's source files share and its users do not see: the state class and the refusal
-// of bad input.
+// What FemModel's source files share and its users do not see: the state class, the refusal of
+// bad input, and the warped stiffness blocks of one element (the step's portable element pass
+// and AssembleWarped write them alike).
 #pragma once
 
 #include <Eigen/Core>
@@ -63,5 +64,31 @@ class FemState final : public TissueState {
     std::copy(good_elastic_last.begin(), good_elastic_last.end(), elastic_last.begin());
   }
 };
+
+// Adds one element's warped stiffness blocks R K_ab Rᵀ = V (λ r_a r_bᵀ + μ r_b r_aᵀ +
+// μ (∇N_a·∇N_b) I), from its rotated gradients r_a = R ∇N_a (RestBlock's formula in the rotated
+// frame; r_a·r_b = ∇N_a·∇N_b): 16 outer products instead of 32 3×3 matrix products. `blocks` are
+// the element's 16 block indices (4 a + b; < 0 where upper storage keeps the transpose of (b, a)
+// instead), `grad` its ∇N_a (3 each), cl = V k λ and cm = V k μ with the stiffness scale k;
+// block (a, b) is added at values + 9 · blocks[4 a + b] (column-major).
+inline void AddWarpedElementBlocks(const int32_t* blocks, const double* grad, const double r[4][3],
+                                   double cl, double cm, double* values) {
+  for (int a = 0; a < 4; ++a) {
+    for (int b = 0; b < 4; ++b) {
+      const int32_t block = blocks[4 * a + b];
+      if (block < 0) continue;  // upper storage: the transpose of (b, a)
+      const double* ga = grad + 3 * a;
+      const double* gb = grad + 3 * b;
+      const double diagonal = cm * (ga[0] * gb[0] + ga[1] * gb[1] + ga[2] * gb[2]);
+      double* out = values + 9 * static_cast<size_t>(block);
+      for (int c = 0; c < 3; ++c) {
+        for (int i = 0; i < 3; ++i) {
+          out[3 * c + i] += cl * r[a][i] * r[b][c] + cm * r[b][i] * r[a][c];
+        }
+        out[4 * c] += diagonal;
+      }
+    }
+  }
+}
 
 }  // namespace somasim::models::fem::internal

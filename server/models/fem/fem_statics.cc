@@ -170,21 +170,10 @@ StaticResult FemModel::SolveStaticImpl(const StaticLoads& loads, TissueState* st
     if (kind_ == FemKind::kLinear && linear_factorised) return true;
     for (int attempt = 0; attempt < 3; ++attempt) {
       if (attempt == 1 && kind_ != FemKind::kCorotational) continue;
-      if (attempt == 1) {  // the rotated (warped) tangent, positive semi-definite
-        tangent.SetZero();
-        for (int32_t e = 0; e < num_tets(); ++e) {
-          if (sh.volumes[static_cast<size_t>(e)] == 0.0) continue;  // cut away
-          const Eigen::Matrix<double, 12, 12> ke =
-              ElementTangentOf(sh, state->positions, e, false, viscous);
-          for (int a = 0; a < 4; ++a) {
-            for (int b = 0; b < 4; ++b) {
-              tangent.block(tangent.element_block(e, a, b)) += ke.block<3, 3>(3 * a, 3 * b);
-            }
-          }
-        }
-      } else {
-        AssembleExact(sh, attempt == 2 ? sh.rest : state->positions, &tangent, viscous);
-      }
+      // 0: the exact tangent at x; 1: the rotated (warped) one, positive semi-definite; 2: the
+      // exact tangent at rest.
+      AssembleElementTangents(sh, attempt == 2 ? sh.rest : state->positions, attempt != 1, viscous,
+                              &tangent);
       tangent.FillScalarLower(ws.k_source, &ws.k_free);
       if (!ws.analysed) {
         cholesky.Analyse(ws.k_free);
