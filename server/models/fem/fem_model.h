@@ -282,6 +282,9 @@ class FemModel final : public TissueModel {
   // 9 × num_tets), and the update of the internal variables once the step is accepted.
   ViscousStep BeginViscousStep(const TissueState& state, double dt, double* offset) const;
   void EndViscousStep(double dt, TissueState* state) const;
+  // SolveStatic, SolveQuasiStatic (with a viscous context) and NewtonIteration (single_iteration)
+  // run one StaticSolve (fem_statics.cc).
+  class StaticSolve;
   StaticResult SolveStaticImpl(const StaticLoads& loads, TissueState* state,
                                const ViscousStep* viscous, StaticWorkspace* workspace,
                                bool single_iteration) const;
