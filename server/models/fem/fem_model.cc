@@ -6,13 +6,13 @@
 #include <Eigen/Core>
 #include <algorithm>
 #include <cassert>
-#include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <memory>
 #include <string>
 #include <vector>
 
+#include "common/checks/finite.h"
 #include "server/models/fem/fem_model_internal.h"
 #include "server/models/particle_mesh.h"
 
@@ -27,9 +27,7 @@ using internal::Refuse;
 // Refuses parameters out of the ranges fem_model.h gives them, naming the first bad one.
 void CheckParameters(const FemParameters& p) {
   const auto finite_positive = [](double value, const char* what) {
-    if (!(value > 0.0) || !std::isfinite(value)) {
-      Refuse(std::string(what) + " must be a finite value > 0");
-    }
+    if (!checks::FinitePositive(value)) Refuse(std::string(what) + " must be a finite value > 0");
   };
   if (p.kind == FemKind::kHyperelastic) {
     CheckMaterial(p.hyperelastic);
@@ -42,8 +40,8 @@ void CheckParameters(const FemParameters& p) {
   if (p.kind != FemKind::kHyperelastic && !(p.poisson_ratio > -1.0 && p.poisson_ratio < 0.5)) {
     Refuse("poisson_ratio must lie in (-1, 0.5)");
   }
-  if (!(p.rayleigh_mass >= 0.0) || !std::isfinite(p.rayleigh_mass) ||
-      !(p.rayleigh_stiffness >= 0.0) || !std::isfinite(p.rayleigh_stiffness)) {
+  if (!checks::FiniteNonNegative(p.rayleigh_mass) ||
+      !checks::FiniteNonNegative(p.rayleigh_stiffness)) {
     Refuse("rayleigh_mass [1/s] and rayleigh_stiffness [s] must be finite and >= 0");
   }
   if (!(p.cg_max_iterations > 0)) Refuse("cg_max_iterations must be > 0");
@@ -53,7 +51,7 @@ void CheckParameters(const FemParameters& p) {
   double gamma_sum = 0.0;
   for (size_t k = 0; k < p.prony.size(); ++k) {
     const PronyTerm& t = p.prony[k];
-    if (!(t.gamma >= 0.0) || !std::isfinite(t.gamma) || !(t.tau > 0.0) || !std::isfinite(t.tau)) {
+    if (!checks::FiniteNonNegative(t.gamma) || !checks::FinitePositive(t.tau)) {
       Refuse("Prony term " + std::to_string(k + 1) + " needs gamma >= 0 and tau [s] > 0");
     }
     gamma_sum += t.gamma;

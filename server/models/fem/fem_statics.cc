@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "common/checks/finite.h"
 #include "server/models/fem/fem_model.h"
 #include "server/models/fem/fem_model_internal.h"
 #include "server/models/fem/sparse_cholesky.h"
@@ -425,7 +426,7 @@ StaticResult FemModel::NewtonIteration(const StaticLoads& loads, TissueState* st
 
 StaticResult FemModel::SolveQuasiStatic(const StaticLoads& loads, double dt, TissueState* state,
                                         StaticWorkspace* workspace) const {
-  if (!(dt > 0.0) || !std::isfinite(dt)) Refuse("quasi-static dt [s] must be > 0");
+  if (!checks::FinitePositive(dt)) Refuse("quasi-static dt [s] must be > 0");
   if (prony_.empty()) return SolveStaticImpl(loads, state, nullptr, workspace, false);
   StaticWorkspace local;
   if (workspace == nullptr) workspace = &local;
