@@ -45,10 +45,8 @@ class FemState final : public TissueState {
   mesh::Points rest;
   Eigen::Matrix<double, 3, Eigen::Dynamic> gradients;
   std::vector<double> volumes;
-  int32_t num_cut = 0;  // elements cut away
-  // ApplyCut's scratch: per moved node its rest move (3 × num_nodes), and per element its
-  // candidate gradients and volume while a move is tried.
-  mesh::Points rest_move;
+  int32_t num_cut = 0;     // elements cut away
+  mesh::Points rest_move;  // ApplyCut's scratch: per moved node its rest move, 3 × num_nodes
 
  protected:
   void SaveGood() override {
