@@ -1,30 +1,8 @@
-// Finite elements on linear tetrahedra (SPEC §4.4, issue 5): linear elasticity (small strain,
-// constant stiffness), corotational linear elasticity (per-element rotation by polar
-// decomposition, Müller & Gross 2004) and total-Lagrangian hyperelasticity (hyperelastic.h:
-// seed 000's reduced-polynomial liver, neo-Hookean, St Venant–Kirchhoff; f_a = -V P(F) ∇N_a,
-// tangent from dP), behind the tissue-model interface. Pure kernel.
-//
-// Material: isotropic Hooke, λ = E ν / ((1 + ν)(1 - 2ν)), μ = E / (2 (1 + ν)). Per element with
-// deformation gradient F = Σ_a x_a ∇N_aᵀ:
-//   linear:        ε = sym(F) - I,                    P = σ(ε) = λ tr(ε) I + 2 μ ε
-//   corotational:  F = R S (polar), ε = S - I,        P = R σ(ε)
-//   energy         Ψ = V (μ ε:ε + λ/2 tr(ε)²),        nodal force f_a = -V P ∇N_a.
-// For the corotational model with the polar R these forces are the exact gradient of Ψ (the
-// terms in dR vanish because ε is symmetric and Rᵀ dR skew), so energy, forces and the tangent
-// are consistent. Masses are lumped (ρ V / 4 per corner). Damping is Rayleigh, C = α M + β K.
-//
-// Dynamics (Step): linearised implicit Euler (Baraff & Witkin 1998), as SOFA's EulerImplicit:
-//   (M + dt C + dt² K) Δv = dt (f(x) - C v + f_ext - dt K v),  v += Δv,  x += dt v,
-// with K the element stiffnesses rotated into the current frame, R K_e Rᵀ ("warped stiffness",
-// symmetric positive semi-definite, so CG always applies; for the linear model R = I), solved
-// by block-Jacobi preconditioned conjugate gradients warm-started from the last step's Δv. The
-// step's rotations come from PolarRotationFrom warm-started at the last step's (eight elements at
-// a time with AVX-512), forces and matrix in one pass over the elements, the matrix kept as its
-// upper blocks (half the memory each product streams).
-// Statics (SolveStatic): Newton's method on the total potential with the exact tangent (for the
-// corotational model including the derivative of R), a backtracking line search, load stepping,
-// and CHOLMOD's supernodal Cholesky factorisation for each Newton system (or, for a time history
-// with StaticLoads::reuse_factorisation, an earlier system's: modified Newton).
+// Finite elements on linear tetrahedra (SPEC §4.4, issue 5) behind the tissue-model interface:
+// linear, corotational (Müller & Gross 2004) and total-Lagrangian hyperelastic models
+// (hyperelastic.h), QLV viscoelasticity, implicit Euler dynamics (Step), Newton statics
+// (SolveStatic) and cutting (ApplyCut). Pure kernel. The formulas: docs/models.md, "Finite
+// elements".
 #pragma once
 
 #include <Eigen/Core>
@@ -117,7 +95,7 @@ struct StaticLoads {
   // the last factorised tangent — from an earlier call with the same workspace and held DOFs
   // too — while its steps shrink the residual by reuse_ratio (in (0, 1)) or better, and
   // refactorise after a step that does not. An iteration then costs a solve with the old factor
-  // instead of an assembly and a factorisation (CHOLMOD's is ~100× a solve on liver4055);
+  // instead of an assembly and a factorisation (far dearer than a solve: docs/benchmarks.md);
   // convergence is linear instead of quadratic, to the same tolerance. A state that is the one
   // the last call with the workspace left also starts from its positions extrapolated along
   // that call's change (load_steps = 1).
@@ -282,6 +260,9 @@ class FemModel final : public TissueModel {
   // 9 × num_tets), and the update of the internal variables once the step is accepted.
   ViscousStep BeginViscousStep(const TissueState& state, double dt, double* offset) const;
   void EndViscousStep(double dt, TissueState* state) const;
+  // SolveStatic, SolveQuasiStatic (with a viscous context) and NewtonIteration (single_iteration)
+  // run one StaticSolve (fem_statics.cc).
+  class StaticSolve;
   StaticResult SolveStaticImpl(const StaticLoads& loads, TissueState* state,
                                const ViscousStep* viscous, StaticWorkspace* workspace,
                                bool single_iteration) const;
@@ -291,9 +272,9 @@ class FemModel final : public TissueModel {
   void AssembleWarped(const Shape& sh, const mesh::Points& x, const double* rotations, double scale,
                       double mass_scale, BlockSparseMatrix* matrix,
                       const ViscousStep* viscous = nullptr) const;
-  // Σ_e ElementTangent(x, e, true, viscous) into `matrix` (zeroed first).
-  void AssembleExact(const Shape& sh, const mesh::Points& x, BlockSparseMatrix* matrix,
-                     const ViscousStep* viscous) const;
+  // Σ_e ElementTangent(x, e, exact, viscous) into `matrix` (zeroed first).
+  void AssembleElementTangents(const Shape& sh, const mesh::Points& x, bool exact,
+                               const ViscousStep* viscous, BlockSparseMatrix* matrix) const;
   // Linear and corotational Step: ElasticForces and AssembleWarped fused into one pass over the
   // elements (equal up to rounding), each rotation warm-started from `quaternions` (4 × num_tets:
   // the last step's, updated). With AVX-512 the corotational kind does F, R, forces and blocks

@@ -5,6 +5,8 @@
 #include <limits>
 #include <stdexcept>
 
+#include "common/checks/finite.h"
+
 namespace somasim::models::fem {
 namespace {
 
@@ -81,7 +83,7 @@ void CheckMaterial(const HyperelasticMaterial& m) {
     throw std::invalid_argument("fem: hyperelastic material: " + what);
   };
   if (m.law == HyperelasticLaw::kStVenantKirchhoff) {
-    if (!(m.mu > 0.0) || !std::isfinite(m.mu) || !std::isfinite(m.lambda) ||
+    if (!checks::FinitePositive(m.mu) || !std::isfinite(m.lambda) ||
         !(m.lambda + 2.0 * m.mu / 3.0 > 0.0)) {
       bad("St Venant-Kirchhoff needs mu > 0 and a bulk modulus lambda + 2 mu / 3 > 0");
     }
@@ -91,11 +93,11 @@ void CheckMaterial(const HyperelasticMaterial& m) {
     if (!std::isfinite(m.c[i])) bad("C" + std::to_string(i + 1) + "0 is not finite");
   }
   if (!(m.c[0] > 0.0)) bad("C10 must be > 0 (the initial shear modulus is 2 C10)");
-  if (!(m.d[0] > 0.0) || !std::isfinite(m.d[0])) {
+  if (!checks::FinitePositive(m.d[0])) {
     bad("D1 must be a finite value > 0 (the initial bulk modulus is 2 / D1)");
   }
   for (size_t i = 1; i < m.d.size(); ++i) {
-    if (!(m.d[i] >= 0.0) || !std::isfinite(m.d[i])) {
+    if (!checks::FiniteNonNegative(m.d[i])) {
       bad("D" + std::to_string(i + 1) + " must be finite and >= 0 (0: no term)");
     }
   }

@@ -1,14 +1,7 @@
-// Isotropic hyperelastic laws for total-Lagrangian tetrahedra (SPEC §4.4, seed 000): the strain
-// energy density W(F) [J/m³], the first Piola–Kirchhoff stress P = ∂W/∂F [Pa] and its
-// differential dP for a change dF of the deformation gradient. Pure.
-//
-// Reduced polynomial (seed 000 eq. 5, Nava et al. 2008), in the convention of Abaqus and
-// CalculiX so that results compare with standard codes:
-//   W = Σ_{i=1..5} C_i0 (Ī1 - 3)^i + Σ_{i=1..3} (1/D_i) (J - 1)^{2i},
-//   Ī1 = J^{-2/3} I1 (the deviatoric invariant), I1 = tr(Fᵀ F), J = det F.
-// Initial shear modulus μ0 = 2 C10, bulk modulus κ0 = 2 / D1, so the effective Poisson ratio is
-// ν0 = (3κ0 - 2μ0) / (2 (3κ0 + μ0)). Neo-Hookean is the case C10, D1 only.
-// St Venant–Kirchhoff: W = μ E:E + λ/2 tr(E)² with Green's strain E = ½ (Fᵀ F - I).
+// Isotropic hyperelastic laws for total-Lagrangian tetrahedra (SPEC §4.4, seed 000): the reduced
+// polynomial (seed 000 eq. 5, Nava et al. 2008, in Abaqus and CalculiX's convention), neo-Hookean
+// and St Venant–Kirchhoff; the strain energy density W(F) [J/m³], the first Piola–Kirchhoff stress
+// P = ∂W/∂F [Pa] and its differential dP. Pure. The formulas: docs/models.md, "Finite elements".
 #pragma once
 
 #include <Eigen/Core>

@@ -1,7 +1,8 @@
 // PolarRotationFrom's iteration (tet_elements.h) on eight 3×3 matrices in the eight lanes of
 // AVX-512 registers, structure of arrays: lane l of every vector is matrix l. Internal to the
 // FEM target: PolarRotations (tet_elements.cc) runs it on matrices in memory, the corotational
-// element pass (fem_model.cc) on the deformation gradients it has just computed in registers.
+// element pass (fem_corotational_pass.cc) on the deformation gradients it has just computed in
+// registers.
 // Callers compile with SOMASIM_FEM_AVX512 and check CpuHasAvx512() first.
 #ifndef SOMASIM_SERVER_MODELS_FEM_POLAR_AVX512_H_
 #define SOMASIM_SERVER_MODELS_FEM_POLAR_AVX512_H_
