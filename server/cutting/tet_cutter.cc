@@ -14,9 +14,6 @@ namespace {
 
 using Eigen::Vector3d;
 
-// Local faces, the face opposite corner f, outward for a positively oriented tetrahedron (as
-// common/mesh/topology.cc).
-constexpr int kTetFaces[4][3] = {{1, 2, 3}, {0, 3, 2}, {0, 1, 3}, {0, 2, 1}};
 constexpr int kTetEdges[6][2] = {{0, 1}, {0, 2}, {0, 3}, {1, 2}, {1, 3}, {2, 3}};
 
 // The point of segment ab nearest to x.
@@ -124,11 +121,11 @@ TetCutter::TetCutter(const mesh::Tetrahedra& tets, const mesh::Points& positions
   node_alive_.resize(static_cast<size_t>(num_nodes_));
   for (int32_t v = 0; v < num_nodes_; ++v)
     node_alive_[static_cast<size_t>(v)] = adjacency.Count(static_cast<size_t>(v));
-  neighbours_ = mesh::TetFaceNeighbours(num_nodes_, tets_);
+  surface_ = CutSurface(num_nodes_, tets_);
   on_surface_.assign(static_cast<size_t>(num_nodes_), 0);
   for (Eigen::Index t = 0; t < tets_.cols(); ++t) {
     for (int f = 0; f < 4; ++f) {
-      if (neighbours_(f, t) != -1) continue;
+      if (surface_.neighbour(f, t) != -1) continue;
       for (int k = 0; k < 3; ++k) on_surface_[static_cast<size_t>(tets_(kTetFaces[f][k], t))] = 1;
     }
   }
@@ -164,7 +161,7 @@ Vector3d TetCutter::SurfaceNormal(int32_t node, const mesh::Points& x) const {
        i < node_tet_offsets_[static_cast<size_t>(node) + 1]; ++i) {
     const int32_t t = node_tet_entries_[static_cast<size_t>(i)];
     for (int f = 0; f < 4; ++f) {
-      if (neighbours_(f, t) != -1) continue;  // the original outer surface only
+      if (surface_.neighbour(f, t) != -1) continue;  // the original outer surface only
       const int a = tets_(kTetFaces[f][0], t), b = tets_(kTetFaces[f][1], t),
                 c = tets_(kTetFaces[f][2], t);
       if (a != node && b != node && c != node) continue;
@@ -266,7 +263,7 @@ bool TetCutter::SplitPinch(int32_t v, int32_t w, bool dry_run) {
     for (int f = 0; f < 4; ++f) {
       // Only faces holding v (and w): the face opposite corner f holds every other corner.
       if (tets_(f, t) == v || (w >= 0 && tets_(f, t) == w)) continue;
-      const int32_t nb = neighbours_(f, t);
+      const int32_t nb = surface_.neighbour(f, t);
       if (nb < 0 || alive_[static_cast<size_t>(nb)] == 0) continue;
       for (int32_t j = 0; j < m; ++j) {
         if (fan_[static_cast<size_t>(j)] != nb) continue;
@@ -386,7 +383,7 @@ bool TetCutter::SplitLink(int32_t v, bool dry_run) {
     const int32_t t = fan_[static_cast<size_t>(i)];
     for (int f = 0; f < 4; ++f) {
       if (tets_(f, t) == v) continue;  // the face opposite v does not hold it
-      const int32_t nb = neighbours_(f, t);
+      const int32_t nb = surface_.neighbour(f, t);
       if (nb >= 0 && alive_[static_cast<size_t>(nb)] != 0) continue;
       int32_t ends[2];
       int32_t e = 0;
@@ -414,7 +411,7 @@ bool TetCutter::SplitLink(int32_t v, bool dry_run) {
     int32_t touches = 0;
     for (int f = 0; f < 4; ++f) {
       if (tets_(f, t) == v) continue;
-      const int32_t nb = neighbours_(f, t);
+      const int32_t nb = surface_.neighbour(f, t);
       if (nb >= 0 && alive_[static_cast<size_t>(nb)] != 0) continue;
       const int32_t node =
           tets_(kTetFaces[f][0], t) != v ? tets_(kTetFaces[f][0], t) : tets_(kTetFaces[f][1], t);
@@ -437,7 +434,7 @@ bool TetCutter::SplitLink(int32_t v, bool dry_run) {
       const int32_t t = fan_[static_cast<size_t>(i)];
       for (int f = 0; f < 4 && goal < 0; ++f) {
         if (tets_(f, t) == v) continue;
-        const int32_t nb = neighbours_(f, t);
+        const int32_t nb = surface_.neighbour(f, t);
         if (nb < 0 || alive_[static_cast<size_t>(nb)] == 0) continue;
         for (int32_t j = 0; j < m; ++j) {
           if (fan_[static_cast<size_t>(j)] != nb || dist_[static_cast<size_t>(j)] >= 0) continue;
@@ -673,29 +670,7 @@ void TetCutter::ExtractSurface(mesh::Triangles* triangles, std::vector<uint8_t>*
 
 void TetCutter::ExtractSurface(std::span<const uint8_t> alive, mesh::Triangles* triangles,
                                std::vector<uint8_t>* inner) const {
-  if (alive.size() != alive_.size()) {
-    throw std::invalid_argument("cut surface: " + std::to_string(alive.size()) +
-                                " alive flags for " + std::to_string(alive_.size()) +
-                                " tetrahedra");
-  }
-  std::vector<int32_t> faces;  // 4 t + f
-  for (Eigen::Index t = 0; t < tets_.cols(); ++t) {
-    if (alive[static_cast<size_t>(t)] == 0) continue;
-    for (int f = 0; f < 4; ++f) {
-      const int32_t nb = neighbours_(f, t);
-      if (nb >= 0 && alive[static_cast<size_t>(nb)] != 0) continue;
-      faces.push_back(static_cast<int32_t>(4 * t + f));
-    }
-  }
-  triangles->resize(3, static_cast<Eigen::Index>(faces.size()));
-  inner->resize(faces.size());
-  for (size_t i = 0; i < faces.size(); ++i) {
-    const int32_t t = faces[i] / 4;
-    const int f = faces[i] % 4;
-    for (int k = 0; k < 3; ++k)
-      (*triangles)(k, static_cast<Eigen::Index>(i)) = tets_(kTetFaces[f][k], t);
-    (*inner)[i] = neighbours_(f, t) >= 0 ? 1 : 0;
-  }
+  surface_.Extract(alive, triangles, inner);
 }
 
 }  // namespace somasim::cutting

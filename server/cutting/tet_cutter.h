@@ -48,6 +48,7 @@
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
+#include "server/cutting/cut_surface.h"
 #include "server/models/cut_geometry.h"
 
 namespace somasim::cutting {
@@ -99,7 +100,8 @@ class TetCutter {
   void ExtractSurface(mesh::Triangles* triangles, std::vector<uint8_t>* inner) const;
   // The same for other alive flags (num_tets of them, 1 = alive): a copy the cutting thread
   // handed over. Touches no scratch of the cutter, so another thread may call it while this
-  // cutter is idle or on a different instance.
+  // cutter is idle or on a different instance. Both are the cutter's CutSurface::Extract; a
+  // reader that needs only this holds a CutSurface of its own instead of a TetCutter.
   void ExtractSurface(std::span<const uint8_t> alive, mesh::Triangles* triangles,
                       std::vector<uint8_t>* inner) const;
 
@@ -151,7 +153,7 @@ class TetCutter {
   std::vector<int32_t> node_alive_;        // alive tets per node
   std::vector<int32_t> node_tet_offsets_;  // node -> tets (all, alive or not)
   std::vector<int32_t> node_tet_entries_;
-  Eigen::Matrix<int32_t, 4, Eigen::Dynamic> neighbours_;  // across each face, -1 outside
+  CutSurface surface_;  // the face neighbours (-1 outside), and the surface extraction
   std::vector<uint8_t> on_surface_;
   uint32_t topology_version_ = 0;
 
