@@ -34,6 +34,7 @@ class CutSurface {
                std::vector<uint8_t>* inner) const;
 
   int32_t num_tets() const { return static_cast<int32_t>(tets_.cols()); }
+  const mesh::Tetrahedra& tets() const { return tets_; }
   // The neighbour of tetrahedron t across its face f: -1 on the original outer surface, -2 where
   // more than two tetrahedra share the face (mesh::TetFaceNeighbours).
   int32_t neighbour(int f, Eigen::Index t) const { return neighbours_(f, t); }
