@@ -10,13 +10,6 @@
 // triangle_queries.h (FirstHit's is watertight: a segment crossing a closed surface always hits),
 // so every query answers exactly what a brute-force loop over all triangles with those functions
 // answers (ties go to the smallest triangle index).
-//
-// Layout (private): 32-byte nodes in depth-first order (first child next, second child by
-// index), leaves holding a range of a triangle permutation with the triangles' vertex indices
-// copied alongside; for Refit each leaf's distinct vertices (one pass over leaves: box in
-// double, SSE2 or AVX2, rounded outwards to float once; the AVX2 pass takes leaves in pairs,
-// sibling leaves first, and fits their parent too) and the internal nodes by height (one pass,
-// float min/max). Depth is bounded (kMaxDepth), so traversals use a fixed stack.
 #pragma once
 
 #include <Eigen/Core>
@@ -108,6 +101,14 @@ class AabbTree {
   int32_t CountBoxMismatchesForTesting() const;
 
  private:
+  // Layout: 32-byte nodes in depth-first order (first child next, second child by index),
+  // leaves holding a range of a triangle permutation with the triangles' vertex indices copied
+  // alongside; for Refit each leaf's distinct vertices (one pass over leaves: box in double,
+  // SSE2 or AVX2, rounded outwards to float once; the AVX2 pass takes leaves in pairs, sibling
+  // leaves first, and fits their parent too) and the internal nodes by height (one pass, float
+  // min/max). Depth is bounded (kMaxDepth), so traversals use a fixed stack. The build is in
+  // aabb_tree.cc, Refit in aabb_tree_refit.cc, the queries in aabb_tree_queries.cc.
+  //
   // A node: its box in single precision rounded outwards (it always contains its triangles),
   // 32 bytes so two share a cache line. Nodes are in depth-first order: an internal node's
   // first child is the next node, `index` is its second child; a leaf (count > 0) holds the
