@@ -130,6 +130,7 @@ class LegacyReader {
     return binary_ ? SourceLocation::Byte(static_cast<int64_t>(offset)) : in_.token_location();
   }
 
+  // Keyword lines (vtk_legacy_reader.cc).
   KeywordLine NextKeyword(std::string_view what);
   void ExpectArgs(const KeywordLine& kw, size_t min, size_t max, std::string_view usage) const;
   int64_t ArgInt(const KeywordLine& kw, size_t i, std::string_view what) const;
@@ -138,6 +139,7 @@ class LegacyReader {
   [[noreturn]] void ExplainBinaryMismatch(const KeywordLine& kw) const;
   bool PeekKeyword(std::string_view upper);
 
+  // Values (vtk_legacy_values.cc).
   void CheckCount(int64_t count, int64_t ascii_bytes_each, int64_t binary_bytes_each,
                   std::string_view what, SourceLocation where) const;
   // Reads count numbers of the given type, as V = int64_t (`type` must be an integral type) or
@@ -153,6 +155,8 @@ class LegacyReader {
   ByteReader BeginBinary(int64_t bytes, const std::string& what, const KeywordLine& kw);
   void EndBinary(size_t bytes);
 
+  // Sections (vtk_legacy_reader.cc; METADATA, FIELD and the attributes in
+  // vtk_legacy_attributes.cc) and the mesh built from them.
   void ReadPoints(const KeywordLine& kw);
   Cells ReadCells(const KeywordLine& kw);
   Cells ReadClassicCells(const KeywordLine& kw, int64_t n, int64_t size);

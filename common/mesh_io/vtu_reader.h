@@ -5,6 +5,7 @@
 // from ascii, base64 or raw bytes, zlib-compressed or not).
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <deque>
 #include <initializer_list>
@@ -25,9 +26,9 @@ namespace somasim::mesh_io::vtu_internal {
 
 // Deflate cannot expand data by more than about 1032:1, so a block header claiming more is
 // a corrupt (or hostile) file; checked before anything is allocated.
-constexpr uint64_t kMaxInflateRatio = 1032;
+inline constexpr uint64_t kMaxInflateRatio = 1032;
 // Counts above this cannot describe a real mesh and would overflow byte arithmetic.
-constexpr int64_t kMaxCount = int64_t{1} << 50;
+inline constexpr int64_t kMaxCount = int64_t{1} << 50;
 
 enum class Scalar {
   kInt8,
