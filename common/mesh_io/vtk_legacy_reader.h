@@ -147,10 +147,15 @@ class LegacyReader {
   template <typename V>
   std::vector<V> ReadValues(Scalar type, int64_t count, const std::string& what,
                             const KeywordLine& kw, std::vector<SourceLocation>* where);
+  // One value each, forced inline into the loops of ReadValues and SkipValues, their only
+  // callers: gcc leaves a call per value to a member with external linkage.
   template <typename V>
-  V AsciiValue(int64_t i, int64_t count, const std::string& what, const KeywordLine& kw);
+  __attribute__((always_inline)) inline V AsciiValue(int64_t i, int64_t count,
+                                                     const std::string& what,
+                                                     const KeywordLine& kw);
   template <typename V>
-  V BinaryValue(Scalar type, int64_t at, ByteReader* r, const std::string& what) const;
+  __attribute__((always_inline)) inline V BinaryValue(Scalar type, int64_t at, ByteReader* r,
+                                                      const std::string& what) const;
   void SkipValues(Scalar type, int64_t count, const std::string& what, const KeywordLine& kw);
   ByteReader BeginBinary(int64_t bytes, const std::string& what, const KeywordLine& kw);
   void EndBinary(size_t bytes);
