@@ -17,6 +17,8 @@ namespace somasim::cutting {
 // Local faces of a tetrahedron: face f is opposite corner f, outward for a positively oriented
 // tetrahedron (as common/mesh/topology.cc).
 inline constexpr int kTetFaces[4][3] = {{1, 2, 3}, {0, 3, 2}, {0, 1, 3}, {0, 2, 1}};
+// Its six edges, as pairs of corners.
+inline constexpr int kTetEdges[6][2] = {{0, 1}, {0, 2}, {0, 3}, {1, 2}, {1, 3}, {2, 3}};
 
 class CutSurface {
  public:

@@ -1,6 +1,6 @@
 // The cutter's construction and its blade step (Step) in stages: the cut set (crossed, then
-// severed), the removed set kept a manifold (or the step undone), then the relocation
-// (tet_cutter_relocation.cc). The pinch repairs are in tet_cutter_pinch.cc.
+// severed) and the removed set here; keeping its boundary a manifold (or undoing the step) in
+// tet_cutter_pinch.cc; the relocation in tet_cutter_relocation.cc.
 #include "server/cutting/tet_cutter.h"
 
 #include <algorithm>
@@ -14,8 +14,6 @@ namespace somasim::cutting {
 namespace {
 
 using Eigen::Vector3d;
-
-constexpr int kTetEdges[6][2] = {{0, 1}, {0, 2}, {0, 3}, {1, 2}, {1, 3}, {2, 3}};
 
 // Whether edge ab passes from one side of triangle (t0, t1, t2) to the other through it: both
 // ends off its plane by more than `tolerance` [m], on opposite sides, the crossing point within
@@ -218,63 +216,6 @@ void TetCutter::RemoveSevered(CutStepResult* result) {
     }
     if (!Remove(t)) break;
   }
-}
-
-// Keeps the boundary a manifold (beyond the seed): around each vertex and edge of a removed
-// tetrahedron the alive
-// tetrahedra must form one group (linked across faces holding that vertex or edge); otherwise two
-// parts of the mesh touch only there, a pinch no vertex-preserving cut can open. The smaller
-// groups' tetrahedra there are removed too (when that orphans no vertex); where the boundary
-// around a vertex forms two fans, the shortest chain joining them; where neither works, a
-// tetrahedron this step removed is put back (the wound stays closed there).
-void TetCutter::RepairPinches() {
-  for (int pass = 0; pass < 6; ++pass) {
-    bool changed = false;
-    const size_t end = removed_count_;
-    for (size_t i = 0; i < end; ++i) {
-      const int32_t t = removed_[i];
-      for (const auto& e : kTetEdges) {
-        changed = SplitPinch(tet_node(e[0], t), tet_node(e[1], t), false) || changed;
-      }
-      for (int k = 0; k < 4; ++k) {
-        const int32_t u = tet_node(k, t);
-        if (!Pinched(u)) continue;
-        // Split it by removing more; where that would orphan a vertex, put back a tetrahedron
-        // this step removed (the wound stays closed there).
-        changed = SplitPinch(u, -1, false) || SplitLink(u, false) || RestoreAround(u) || changed;
-      }
-    }
-    if (!changed) break;
-  }
-}
-
-// Anything still pinched around this step's changes: the step is undone (every tetrahedron it
-// removed put back; the severed ones wait for a later step, when the blade has moved on). Whether
-// it was undone.
-bool TetCutter::UndoIfPinched(size_t severed_removed, CutStepResult* result) {
-  for (size_t i = 0; i < removed_count_ && result->unresolved == 0; ++i) {
-    const int32_t t = removed_[i];
-    for (int k = 0; k < 4; ++k) result->unresolved += Pinched(tet_node(k, t)) ? 1 : 0;
-    for (const auto& e : kTetEdges) {
-      result->unresolved += SplitPinch(tet_node(e[0], t), tet_node(e[1], t), true) ? 1 : 0;
-    }
-  }
-  if (result->unresolved > 0) {
-    for (size_t i = 0; i < removed_count_; ++i) {
-      const int32_t t = removed_[i];
-      if (alive_[static_cast<size_t>(t)] != 0) continue;
-      alive_[static_cast<size_t>(t)] = 1;
-      for (int k = 0; k < 4; ++k) ++node_alive_[static_cast<size_t>(tet_node(k, t))];
-      if (i < severed_removed && pending_count_ < pending_.size()) {
-        pending_[pending_count_++] = t;
-      }
-    }
-    removed_count_ = 0;
-    result->removed = 0;
-    result->undone = true;
-    return true;
-  }
-  return false;
 }
 
 // The tetrahedra put back leave the removed list (in order), and those listed twice; the severed

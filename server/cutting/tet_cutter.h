@@ -82,7 +82,8 @@ class TetCutter {
   static constexpr int kHistory = 256;  // sweep quads (and tip segments) remembered
 
  private:
-  // Step's stages (tet_cutter.cc; the relocation in tet_cutter_relocation.cc).
+  // Step's stages (tet_cutter.cc; the pinch repairs and the undo in tet_cutter_pinch.cc, the
+  // relocation in tet_cutter_relocation.cc).
   void FindCrossed(const models::SweptQuad& sweep, const Eigen::Vector3d& lo,
                    const Eigen::Vector3d& hi, double tolerance, const mesh::Points& x);
   void KeepSevered(const models::SweptQuad& sweep, const Eigen::Vector3d& n, double tolerance,

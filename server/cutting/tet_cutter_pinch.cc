@@ -1,12 +1,71 @@
 // The cutter's pinch repairs (Step's stage 2): a vertex-preserving cut can never split a vertex,
 // so the alive tetrahedra around a vertex or edge must stay one group and the boundary around a
 // vertex one fan. Removing a group's or a chain's tetrahedra (all or none, never orphaning a
-// vertex), or putting back what this step removed, keeps the boundary a manifold.
+// vertex), or putting back what this step removed, keeps the boundary a manifold; where nothing
+// does, the step is undone. (Kept in one file with every caller of SplitPinch: gcc then
+// specialises it for Pinched's constant arguments, the path most of a step's time is in.)
 #include <algorithm>
 
 #include "server/cutting/tet_cutter.h"
 
 namespace somasim::cutting {
+
+// Keeps the boundary a manifold (beyond the seed): around each vertex and edge of a removed
+// tetrahedron the alive
+// tetrahedra must form one group (linked across faces holding that vertex or edge); otherwise two
+// parts of the mesh touch only there, a pinch no vertex-preserving cut can open. The smaller
+// groups' tetrahedra there are removed too (when that orphans no vertex); where the boundary
+// around a vertex forms two fans, the shortest chain joining them; where neither works, a
+// tetrahedron this step removed is put back (the wound stays closed there).
+void TetCutter::RepairPinches() {
+  for (int pass = 0; pass < 6; ++pass) {
+    bool changed = false;
+    const size_t end = removed_count_;
+    for (size_t i = 0; i < end; ++i) {
+      const int32_t t = removed_[i];
+      for (const auto& e : kTetEdges) {
+        changed = SplitPinch(tet_node(e[0], t), tet_node(e[1], t), false) || changed;
+      }
+      for (int k = 0; k < 4; ++k) {
+        const int32_t u = tet_node(k, t);
+        if (!Pinched(u)) continue;
+        // Split it by removing more; where that would orphan a vertex, put back a tetrahedron
+        // this step removed (the wound stays closed there).
+        changed = SplitPinch(u, -1, false) || SplitLink(u, false) || RestoreAround(u) || changed;
+      }
+    }
+    if (!changed) break;
+  }
+}
+
+// Anything still pinched around this step's changes: the step is undone (every tetrahedron it
+// removed put back; the severed ones wait for a later step, when the blade has moved on). Whether
+// it was undone.
+bool TetCutter::UndoIfPinched(size_t severed_removed, CutStepResult* result) {
+  for (size_t i = 0; i < removed_count_ && result->unresolved == 0; ++i) {
+    const int32_t t = removed_[i];
+    for (int k = 0; k < 4; ++k) result->unresolved += Pinched(tet_node(k, t)) ? 1 : 0;
+    for (const auto& e : kTetEdges) {
+      result->unresolved += SplitPinch(tet_node(e[0], t), tet_node(e[1], t), true) ? 1 : 0;
+    }
+  }
+  if (result->unresolved > 0) {
+    for (size_t i = 0; i < removed_count_; ++i) {
+      const int32_t t = removed_[i];
+      if (alive_[static_cast<size_t>(t)] != 0) continue;
+      alive_[static_cast<size_t>(t)] = 1;
+      for (int k = 0; k < 4; ++k) ++node_alive_[static_cast<size_t>(tet_node(k, t))];
+      if (i < severed_removed && pending_count_ < pending_.size()) {
+        pending_[pending_count_++] = t;
+      }
+    }
+    removed_count_ = 0;
+    result->removed = 0;
+    result->undone = true;
+    return true;
+  }
+  return false;
+}
 
 bool TetCutter::Remove(int32_t t) {
   if (removed_count_ == removed_.size()) return false;  // this step's list is full
