@@ -9,6 +9,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "common/checks/finite.h"
 #include "common/mesh/geometry.h"
 #include "common/mesh/quality.h"
 
@@ -227,7 +228,7 @@ class TetAssembler {
     for (const auto& t : tets) Add(t[0], t[1], t[2], t[3]);
   }
 
-  std::vector<std::array<int32_t, 4>>& tets() { return tets_; }
+  const std::vector<std::array<int32_t, 4>>& tets() const { return tets_; }
 
  private:
   static std::array<std::array<int32_t, 4>, 3> Staircase(const std::array<int32_t, 3>& p,
@@ -246,7 +247,7 @@ class TetAssembler {
 };
 
 void CheckOptions(const StuffingOptions& options) {
-  if (!(options.spacing > 0.0) || !std::isfinite(options.spacing)) {
+  if (!checks::FinitePositive(options.spacing)) {
     throw std::invalid_argument("isosurface stuffing: spacing must be a finite length > 0 m");
   }
   for (int axis = 0; axis < 3; ++axis) {
@@ -262,30 +263,24 @@ void CheckOptions(const StuffingOptions& options) {
   }
 }
 
-}  // namespace
-
-mesh::TetMesh StuffIsosurface(const ImplicitSolid& solid, const StuffingOptions& options,
-                              StuffingStatistics* statistics, int64_t max_lattice_vertices) {
-  CheckOptions(options);
-  const mesh::BoundingBox bounds = solid.Bounds();
-  if (bounds.empty || !bounds.min.allFinite() || !bounds.max.allFinite() ||
-      !(bounds.min.array() <= bounds.max.array()).all()) {
-    throw std::invalid_argument("isosurface stuffing: the solid's bounds are empty or not finite");
-  }
-  const BccLattice lattice(bounds, options, max_lattice_vertices);
+// 1. The lattice vertices' positions and the signs of the implicit function there.
+void EvaluateSigns(const ImplicitSolid& solid, const BccLattice& lattice,
+                   std::vector<Vector3d>* positions, std::vector<Sign>* signs) {
   const int32_t num_lattice = lattice.num_vertices();
-
-  // 1. Signs of the implicit function at the lattice vertices.
-  std::vector<Vector3d> positions(static_cast<size_t>(num_lattice));
-  std::vector<Sign> signs(static_cast<size_t>(num_lattice));
+  positions->resize(static_cast<size_t>(num_lattice));
+  signs->resize(static_cast<size_t>(num_lattice));
   for (int32_t v = 0; v < num_lattice; ++v) {
-    positions[static_cast<size_t>(v)] = lattice.Position(v);
-    const double value = solid.Value(positions[static_cast<size_t>(v)]);
-    signs[static_cast<size_t>(v)] =
+    (*positions)[static_cast<size_t>(v)] = lattice.Position(v);
+    const double value = solid.Value((*positions)[static_cast<size_t>(v)]);
+    (*signs)[static_cast<size_t>(v)] =
         value < 0.0 ? Sign::kInside : (value > 0.0 ? Sign::kOutside : Sign::kZero);
   }
+}
 
-  // 2. Cut points on the edges whose ends lie strictly on opposite sides.
+// 2. Cut points on the edges whose ends lie strictly on opposite sides, in lattice edge order.
+std::vector<CutEdge> FindCutPoints(const ImplicitSolid& solid, const BccLattice& lattice,
+                                   const std::vector<Vector3d>& positions,
+                                   const std::vector<Sign>& signs) {
   std::vector<CutEdge> cuts;
   lattice.ForEachEdge([&](int32_t u, int32_t v, bool is_long) {
     const Sign su = signs[static_cast<size_t>(u)];
@@ -299,28 +294,47 @@ mesh::TetMesh StuffIsosurface(const ImplicitSolid& solid, const StuffingOptions&
     cut.is_long = is_long;
     cuts.push_back(cut);
   });
+  return cuts;
+}
 
-  // Cut edges incident to each lattice vertex (compressed rows).
-  std::vector<int32_t> first(static_cast<size_t>(num_lattice) + 1, 0);
+// The cut edges incident to each lattice vertex, compressed rows: vertex v's are
+// incident[first[v] .. first[v + 1]).
+struct IncidentCuts {
+  std::vector<int32_t> first;     // num_lattice + 1
+  std::vector<int32_t> incident;  // 2 per cut
+};
+
+IncidentCuts CutsPerVertex(int32_t num_lattice, const std::vector<CutEdge>& cuts) {
+  IncidentCuts out;
+  std::vector<int32_t>& first = out.first;
+  first.assign(static_cast<size_t>(num_lattice) + 1, 0);
   for (const CutEdge& cut : cuts) {
     ++first[static_cast<size_t>(cut.u) + 1];
     ++first[static_cast<size_t>(cut.v) + 1];
   }
   for (size_t v = 0; v < static_cast<size_t>(num_lattice); ++v) first[v + 1] += first[v];
-  std::vector<int32_t> incident(static_cast<size_t>(first.back()));
-  {
-    std::vector<int32_t> fill(first.begin(), first.end() - 1);
-    for (size_t c = 0; c < cuts.size(); ++c) {
-      incident[static_cast<size_t>(fill[static_cast<size_t>(cuts[c].u)]++)] =
-          static_cast<int32_t>(c);
-      incident[static_cast<size_t>(fill[static_cast<size_t>(cuts[c].v)]++)] =
-          static_cast<int32_t>(c);
-    }
+  std::vector<int32_t>& incident = out.incident;
+  incident.resize(static_cast<size_t>(first.back()));
+  std::vector<int32_t> fill(first.begin(), first.end() - 1);
+  for (size_t c = 0; c < cuts.size(); ++c) {
+    incident[static_cast<size_t>(fill[static_cast<size_t>(cuts[c].u)]++)] = static_cast<int32_t>(c);
+    incident[static_cast<size_t>(fill[static_cast<size_t>(cuts[c].v)]++)] = static_cast<int32_t>(c);
   }
+  return out;
+}
 
-  // 3. Warping (paper §3): a vertex violated by a cut point — closer than α·edge length — moves
-  // to the closest violating cut point and becomes a surface vertex; the cut points on its
-  // edges are discarded. Vertices are visited in lattice order, so the result is deterministic.
+// 3. Warping (paper §3): a vertex violated by a cut point — closer than α·edge length — moves
+// to the closest violating cut point and becomes a surface vertex; the cut points on its
+// edges are discarded. Vertices are visited in lattice order, so the result is deterministic.
+// Returns how many vertices were warped.
+int64_t Warp(const StuffingOptions& options, const IncidentCuts& incident_cuts,
+             std::vector<Vector3d>* positions_out, std::vector<Sign>* signs,
+             std::vector<CutEdge>* cuts_out) {
+  std::vector<Vector3d>& positions = *positions_out;
+  std::vector<CutEdge>& cuts = *cuts_out;
+  const std::vector<int32_t>& first = incident_cuts.first;
+  const std::vector<int32_t>& incident = incident_cuts.incident;
+  const auto num_lattice = static_cast<int32_t>(positions.size());
   int64_t warped = 0;
   for (int32_t v = 0; v < num_lattice; ++v) {
     const Vector3d& here = positions[static_cast<size_t>(v)];
@@ -340,102 +354,116 @@ mesh::TetMesh StuffIsosurface(const ImplicitSolid& solid, const StuffingOptions&
     }
     if (best_cut < 0) continue;
     positions[static_cast<size_t>(v)] = cuts[static_cast<size_t>(best_cut)].position;
-    signs[static_cast<size_t>(v)] = Sign::kZero;
+    (*signs)[static_cast<size_t>(v)] = Sign::kZero;
     ++warped;
     for (int32_t e = first[static_cast<size_t>(v)]; e < first[static_cast<size_t>(v) + 1]; ++e) {
       cuts[static_cast<size_t>(incident[static_cast<size_t>(e)])].discarded = true;
     }
   }
-  std::unordered_map<uint64_t, int32_t> cut_of_edge;
-  cut_of_edge.reserve(cuts.size());
-  for (size_t c = 0; c < cuts.size(); ++c) {
-    if (!cuts[c].discarded)
-      cut_of_edge.emplace(EdgeKey(cuts[c].u, cuts[c].v), static_cast<int32_t>(c));
+  return warped;
+}
+
+// The global id of the cut point on lattice edge (a, b): num_lattice + its index among the cuts
+// (the discarded ones have none).
+class CutIds {
+ public:
+  CutIds(const std::vector<CutEdge>& cuts, int32_t num_lattice) : num_lattice_(num_lattice) {
+    cut_of_edge_.reserve(cuts.size());
+    for (size_t c = 0; c < cuts.size(); ++c) {
+      if (!cuts[c].discarded)
+        cut_of_edge_.emplace(EdgeKey(cuts[c].u, cuts[c].v), static_cast<int32_t>(c));
+    }
   }
-
-  // 4. Fill every lattice tetrahedron by the stencil of its sign pattern (paper §4, figure 3).
-  TetAssembler assembler(positions, cuts);
-  int64_t tets_cut = 0;
-  const auto cut_id = [&](int32_t a, int32_t b) {
-    const auto found = cut_of_edge.find(EdgeKey(a, b));
+  int32_t operator()(int32_t a, int32_t b) const {
+    const auto found = cut_of_edge_.find(EdgeKey(a, b));
     // Present by construction: a and b are unwarped and on opposite sides.
-    return num_lattice + found->second;
-  };
-  lattice.ForEachTet([&](const std::array<int32_t, 4>& tet) {
-    std::array<int32_t, 4> in{}, zero{}, out{};
-    int n_in = 0, n_zero = 0, n_out = 0;
-    for (const int32_t v : tet) {
-      switch (signs[static_cast<size_t>(v)]) {
-        case Sign::kInside:
-          in[static_cast<size_t>(n_in++)] = v;
-          break;
-        case Sign::kZero:
-          zero[static_cast<size_t>(n_zero++)] = v;
-          break;
-        case Sign::kOutside:
-          out[static_cast<size_t>(n_out++)] = v;
-          break;
-      }
-    }
-    // No inside vertex: nothing to fill. (Four surface vertices can be a sliver lying on the
-    // surface; dropping it keeps the angle guarantee.)
-    if (n_in == 0) return;
-    if (n_out == 0) {
-      assembler.Add(tet[0], tet[1], tet[2], tet[3]);
-      return;
-    }
-    ++tets_cut;
-    // A quadrilateral on a lattice face with inside corners a, b and outside corner o is shared
-    // with the neighbouring lattice tetrahedron, so both must split it alike: the diagonal
-    // starts at the inside corner with the smaller lattice index. Any total order keeps every
-    // prism acyclic, hence triangulable.
-    if (n_in == 1) {
-      const int32_t a = in[0];
-      if (n_out == 3) {
-        assembler.Add(a, cut_id(a, out[0]), cut_id(a, out[1]), cut_id(a, out[2]));
-      } else if (n_out == 2) {
-        assembler.Add(a, zero[0], cut_id(a, out[0]), cut_id(a, out[1]));
-      } else {
-        assembler.Add(a, zero[0], zero[1], cut_id(a, out[0]));
-      }
-    } else if (n_in == 2) {
-      const int32_t a = in[0];
-      const int32_t b = in[1];
-      const int from_a = a < b ? 1 : -1;
-      if (n_out == 2) {
-        // Prism with ends (a, a|c, a|d) and (b, b|c, b|d); the side between the cut points lies
-        // inside this lattice tetrahedron and is free.
-        const int32_t c = out[0];
-        const int32_t d = out[1];
-        assembler.AddPrism({a, cut_id(a, c), cut_id(a, d)}, {b, cut_id(b, c), cut_id(b, d)},
-                           {from_a, 0, from_a});
-      } else {
-        // Pyramid: apex at the surface vertex z over the quadrilateral (a, b, b|o, a|o).
-        const int32_t z = zero[0];
-        const int32_t o = out[0];
-        const int32_t ao = cut_id(a, o);
-        const int32_t bo = cut_id(b, o);
-        if (from_a > 0) {
-          assembler.Add(z, a, b, bo);
-          assembler.Add(z, a, bo, ao);
-        } else {
-          assembler.Add(z, a, b, ao);
-          assembler.Add(z, b, bo, ao);
-        }
-      }
-    } else {
-      // Three inside corners and one outside: prism (a, b, c) – (a|o, b|o, c|o), all three
-      // sides on lattice faces.
-      const int32_t o = out[0];
-      const std::array<int32_t, 3> p = {in[0], in[1], in[2]};
-      const std::array<int32_t, 3> q = {cut_id(p[0], o), cut_id(p[1], o), cut_id(p[2], o)};
-      assembler.AddPrism(p, q, {p[0] < p[1] ? 1 : -1, p[1] < p[2] ? 1 : -1, p[0] < p[2] ? 1 : -1});
-    }
-  });
+    return num_lattice_ + found->second;
+  }
+  int64_t size() const { return static_cast<int64_t>(cut_of_edge_.size()); }
 
-  // 5. Keep only the vertices the tetrahedra use, numbered in global order (lattice, then cuts).
+ private:
+  std::unordered_map<uint64_t, int32_t> cut_of_edge_;
+  int32_t num_lattice_;
+};
+
+// 4. Fills one lattice tetrahedron by the stencil of its sign pattern (paper §4, figure 3).
+// Returns whether the surface cuts it: false when it is filled whole or left out.
+bool FillLatticeTet(const std::array<int32_t, 4>& tet, const std::vector<Sign>& signs,
+                    const CutIds& cut_id, TetAssembler* assembler) {
+  std::array<int32_t, 4> in{}, zero{}, out{};
+  int n_in = 0, n_zero = 0, n_out = 0;
+  for (const int32_t v : tet) {
+    switch (signs[static_cast<size_t>(v)]) {
+      case Sign::kInside:
+        in[static_cast<size_t>(n_in++)] = v;
+        break;
+      case Sign::kZero:
+        zero[static_cast<size_t>(n_zero++)] = v;
+        break;
+      case Sign::kOutside:
+        out[static_cast<size_t>(n_out++)] = v;
+        break;
+    }
+  }
+  // No inside vertex: nothing to fill. (Four surface vertices can be a sliver lying on the
+  // surface; dropping it keeps the angle guarantee.)
+  if (n_in == 0) return false;
+  if (n_out == 0) {
+    assembler->Add(tet[0], tet[1], tet[2], tet[3]);
+    return false;
+  }
+  // A quadrilateral on a lattice face with inside corners a, b and outside corner o is shared
+  // with the neighbouring lattice tetrahedron, so both must split it alike: the diagonal
+  // starts at the inside corner with the smaller lattice index. Any total order keeps every
+  // prism acyclic, hence triangulable.
+  if (n_in == 1) {
+    const int32_t a = in[0];
+    if (n_out == 3) {
+      assembler->Add(a, cut_id(a, out[0]), cut_id(a, out[1]), cut_id(a, out[2]));
+    } else if (n_out == 2) {
+      assembler->Add(a, zero[0], cut_id(a, out[0]), cut_id(a, out[1]));
+    } else {
+      assembler->Add(a, zero[0], zero[1], cut_id(a, out[0]));
+    }
+  } else if (n_in == 2) {
+    const int32_t a = in[0];
+    const int32_t b = in[1];
+    const int from_a = a < b ? 1 : -1;
+    if (n_out == 2) {
+      // Prism with ends (a, a|c, a|d) and (b, b|c, b|d); the side between the cut points lies
+      // inside this lattice tetrahedron and is free.
+      const int32_t c = out[0];
+      const int32_t d = out[1];
+      assembler->AddPrism({a, cut_id(a, c), cut_id(a, d)}, {b, cut_id(b, c), cut_id(b, d)},
+                          {from_a, 0, from_a});
+    } else {
+      // Pyramid: apex at the surface vertex z over the quadrilateral (a, b, b|o, a|o).
+      const int32_t z = zero[0];
+      const int32_t o = out[0];
+      const int32_t ao = cut_id(a, o);
+      const int32_t bo = cut_id(b, o);
+      if (from_a > 0) {
+        assembler->Add(z, a, b, bo);
+        assembler->Add(z, a, bo, ao);
+      } else {
+        assembler->Add(z, a, b, ao);
+        assembler->Add(z, b, bo, ao);
+      }
+    }
+  } else {
+    // Three inside corners and one outside: prism (a, b, c) – (a|o, b|o, c|o), all three
+    // sides on lattice faces.
+    const int32_t o = out[0];
+    const std::array<int32_t, 3> p = {in[0], in[1], in[2]};
+    const std::array<int32_t, 3> q = {cut_id(p[0], o), cut_id(p[1], o), cut_id(p[2], o)};
+    assembler->AddPrism(p, q, {p[0] < p[1] ? 1 : -1, p[1] < p[2] ? 1 : -1, p[0] < p[2] ? 1 : -1});
+  }
+  return true;
+}
+
+// 5. Keeps only the vertices the tetrahedra use, numbered in global order (lattice, then cuts).
+mesh::TetMesh Compact(const TetAssembler& assembler, size_t num_global) {
   const auto& tets = assembler.tets();
-  const size_t num_global = static_cast<size_t>(num_lattice) + cuts.size();
   std::vector<int32_t> new_id(num_global, -1);
   for (const auto& t : tets) {
     for (const int32_t v : t) new_id[static_cast<size_t>(v)] = 0;
@@ -457,10 +485,37 @@ mesh::TetMesh StuffIsosurface(const ImplicitSolid& solid, const StuffingOptions&
           new_id[static_cast<size_t>(tets[t][static_cast<size_t>(c)])];
     }
   }
+  return result;
+}
+
+}  // namespace
+
+mesh::TetMesh StuffIsosurface(const ImplicitSolid& solid, const StuffingOptions& options,
+                              StuffingStatistics* statistics, int64_t max_lattice_vertices) {
+  CheckOptions(options);
+  const mesh::BoundingBox bounds = solid.Bounds();
+  if (bounds.empty || !bounds.min.allFinite() || !bounds.max.allFinite() ||
+      !(bounds.min.array() <= bounds.max.array()).all()) {
+    throw std::invalid_argument("isosurface stuffing: the solid's bounds are empty or not finite");
+  }
+  const BccLattice lattice(bounds, options, max_lattice_vertices);
+  const int32_t num_lattice = lattice.num_vertices();
+  std::vector<Vector3d> positions;
+  std::vector<Sign> signs;
+  EvaluateSigns(solid, lattice, &positions, &signs);
+  std::vector<CutEdge> cuts = FindCutPoints(solid, lattice, positions, signs);
+  const int64_t warped = Warp(options, CutsPerVertex(num_lattice, cuts), &positions, &signs, &cuts);
+  const CutIds cut_id(cuts, num_lattice);
+  TetAssembler assembler(positions, cuts);
+  int64_t tets_cut = 0;
+  lattice.ForEachTet([&](const std::array<int32_t, 4>& tet) {
+    tets_cut += FillLatticeTet(tet, signs, cut_id, &assembler) ? 1 : 0;
+  });
+  mesh::TetMesh result = Compact(assembler, static_cast<size_t>(num_lattice) + cuts.size());
   if (statistics != nullptr) {
     statistics->lattice_vertices = num_lattice;
     statistics->warped_vertices = warped;
-    statistics->cut_points = static_cast<int64_t>(cut_of_edge.size());
+    statistics->cut_points = cut_id.size();
     statistics->lattice_tets_cut = tets_cut;
   }
   return result;

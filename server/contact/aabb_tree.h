@@ -10,13 +10,6 @@
 // triangle_queries.h (FirstHit's is watertight: a segment crossing a closed surface always hits),
 // so every query answers exactly what a brute-force loop over all triangles with those functions
 // answers (ties go to the smallest triangle index).
-//
-// Layout (private): 32-byte nodes in depth-first order (first child next, second child by
-// index), leaves holding a range of a triangle permutation with the triangles' vertex indices
-// copied alongside; for Refit each leaf's distinct vertices (one pass over leaves: box in
-// double, SSE2 or AVX2, rounded outwards to float once; the AVX2 pass takes leaves in pairs,
-// sibling leaves first, and fits their parent too) and the internal nodes by height (one pass,
-// float min/max). Depth is bounded (kMaxDepth), so traversals use a fixed stack.
 #pragma once
 
 #include <Eigen/Core>
@@ -53,8 +46,8 @@ class AabbTree {
   // (3 × N) [m], leaves of at most max_leaf_triangles (>= 1). Throws std::invalid_argument on an
   // index out of range, a non-finite position or max_leaf_triangles < 1. Allocates. Leaves of 8
   // by default: against leaves of 4 the refit gathers a third fewer vertices (neighbouring
-  // triangles share them) and visits half the nodes, 1.5× faster on gallbladder5400, while
-  // the queries cost the same (docs/benchmarks.md).
+  // triangles share them) and visits half the nodes, while the queries cost the same (the
+  // figures are in docs/benchmarks.md, "Leaves of 8 instead of 4").
   AabbTree(const mesh::Points& positions, const mesh::Triangles& triangles,
            int max_leaf_triangles = 8);
 
@@ -87,8 +80,8 @@ class AabbTree {
                         SurfacePoint* nearest) const;
 
   // Positions of the last build or refit (what the queries test against): the tree's own copy
-  // made at build, or the matrix the last Refit was given (not copied: copying 3 × N doubles was
-  // ~10 % of Refit).
+  // made at build, or the matrix the last Refit was given (not copied: copying 3 × N doubles
+  // would be a pass over every vertex on top of the leaves' gathers).
   const mesh::Points& positions() const { return external_ != nullptr ? *external_ : positions_; }
   // How many times the tree has been refitted: a caller that saw the same count last time
   // knows the surface has not moved since (GodObject skips its swallowed-proxy check then).
@@ -108,6 +101,14 @@ class AabbTree {
   int32_t CountBoxMismatchesForTesting() const;
 
  private:
+  // Layout: 32-byte nodes in depth-first order (first child next, second child by index),
+  // leaves holding a range of a triangle permutation with the triangles' vertex indices copied
+  // alongside; for Refit each leaf's distinct vertices (one pass over leaves: box in double,
+  // SSE2 or AVX2, rounded outwards to float once; the AVX2 pass takes leaves in pairs, sibling
+  // leaves first, and fits their parent too) and the internal nodes by height (one pass, float
+  // min/max). Depth is bounded (kMaxDepth), so traversals use a fixed stack. The build is in
+  // aabb_tree.cc, Refit in aabb_tree_refit.cc, the queries in aabb_tree_queries.cc.
+  //
   // A node: its box in single precision rounded outwards (it always contains its triangles),
   // 32 bytes so two share a cache line. Nodes are in depth-first order: an internal node's
   // first child is the next node, `index` is its second child; a leaf (count > 0) holds the
@@ -132,6 +133,14 @@ class AabbTree {
     int32_t parent;        // the node whose children are this leaf and its mate, or -1
     int32_t parent_index;  // that node's index (its second child)
   };
+  // Build stages (aabb_tree.cc): the nodes split top-down; Refit's order of the internal nodes
+  // (by height; returns each node's height) and of the leaves (in pairs).
+  void BuildNodes(const mesh::Points& positions, int max_leaf_triangles);
+  void OrderForRefit(Eigen::Index num_vertices);
+  std::vector<int32_t> OrderInternalByHeight();
+  void PairLeaves(const std::vector<int32_t>& height, const std::vector<int32_t>& leaf_of,
+                  Eigen::Index num_vertices);
+
   mesh::Points positions_;                  // 3 × N: the build's copy
   const mesh::Points* external_ = nullptr;  // 3 × N: the last Refit's positions, if any
   mesh::Triangles triangles_;               // 3 × T, as given

@@ -4,41 +4,12 @@
 // are removed. No vertex is ever added or deleted. Pure geometry and topology (no physics, no
 // I/O); every buffer is sized at construction, so a blade step allocates nothing.
 //
-// One step (Step):
-//  1. The cut set C: alive tetrahedra with an edge crossing S_t (its two triangles, p0 q0 q1 and
-//     p0 q1 p1) from one side to the other, after a bounding-box cull. An edge with an end on
-//     the sweep's plane does not cross: earlier steps relocated vertices there.
-//  2. The removed set R ⊆ C, in ascending order: a tetrahedron is removed once it is severed —
-//     every edge from one side of the sweep's plane to the other crosses within the swept region
-//     (this incision's quads) — so the wound opens behind the blade, never ahead of it; crossed
-//     tetrahedra not yet severed are checked again at the next steps. And only if each of its
-//     vertices keeps another alive tetrahedron (a vertex in no element would make the stiffness
-//     singular: seed 003 §4). Then the boundary is kept a manifold: where the alive
-//     tetrahedra around a vertex or edge of a removed one fall into separate groups (two parts
-//     touching only there: a pinch no vertex-preserving cut can open), all but the largest
-//     group's tetrahedra there are removed too; where the boundary around a vertex forms two
-//     fans (a tube pinched at the vertex), the shortest chain of tetrahedra around it joining
-//     them is removed (beyond the seed; never when that orphans a vertex); where neither works,
-//     tetrahedra this step removed are put back; and if a pinch still remains the whole step is
-//     undone (its severed tetrahedra wait for a later step). So the boundary stays a manifold.
-//  3. Relocation of R's vertices, in ascending order (seed 003 eq. 1):
-//       interior vertex  v ← v − {n·(v − p_t)} n, n the sweep's unit normal;
-//       surface vertex   (on the original outer surface) onto the line where its tangent plane
-//                        (normal: the area-weighted normal of its boundary faces) meets the
-//                        sweep's plane, at the point nearest to v (seed 003 §3: keeps the
-//                        outline); when the two planes are nearly parallel (|n × m| < 0.2) it
-//                        does not move;
-//     then, when the new position lies outside every sweep quad of this cut (the last
-//     kHistory kept), onto the nearest boundary segment of the swept region when that is the
-//     tip's path {p_k, p_k−1} (seed 003 eq. 2; a surface vertex stays on its line, at the point
-//     of the line nearest to that segment). When the blade p_t q_t is nearer (the vertex is
-//     ahead of the blade) it stays: projected onto the blade's line it would join the two sides
-//     of the wound behind the blade for good, as no vertex may be added to split them (the
-//     seed's eq. 2 there, a deliberate departure).
-//     Guard (beyond the seed, which is silent on it): a move never takes an alive tetrahedron
-//     below `min_volume_fraction` of its signed volume before the step; a move that would is
-//     shortened (halved up to 8 times, else dropped). So no element is ever inverted.
-//  4. The removal: alive flags and counts; the topology version +1 when anything was removed.
+// One step (Step), in stages: 1. the cut set, the tetrahedra the sweep crosses and, of those,
+// the severed ones; 2. the removed set, its boundary kept a manifold (or the whole step undone);
+// 3. the relocation of the removed tetrahedra's vertices (seed 003 eq. 1 and 2), never inverting
+// an element; 4. the removal: alive flags and counts, the topology version +1 when anything was
+// removed. Each stage's rules are narrated where it is implemented (tet_cutter.cc,
+// tet_cutter_pinch.cc, tet_cutter_relocation.cc) and explained in docs/cutting.md.
 #pragma once
 
 #include <Eigen/Core>
@@ -48,6 +19,7 @@
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
+#include "server/cutting/cut_surface.h"
 #include "server/models/cut_geometry.h"
 
 namespace somasim::cutting {
@@ -99,7 +71,8 @@ class TetCutter {
   void ExtractSurface(mesh::Triangles* triangles, std::vector<uint8_t>* inner) const;
   // The same for other alive flags (num_tets of them, 1 = alive): a copy the cutting thread
   // handed over. Touches no scratch of the cutter, so another thread may call it while this
-  // cutter is idle or on a different instance.
+  // cutter is idle or on a different instance. Both are the cutter's CutSurface::Extract; a
+  // reader that needs only this holds a CutSurface of its own instead of a TetCutter.
   void ExtractSurface(std::span<const uint8_t> alive, mesh::Triangles* triangles,
                       std::vector<uint8_t>* inner) const;
 
@@ -109,6 +82,19 @@ class TetCutter {
   static constexpr int kHistory = 256;  // sweep quads (and tip segments) remembered
 
  private:
+  // Step's stages (tet_cutter.cc; the pinch repairs and the undo in tet_cutter_pinch.cc, the
+  // relocation in tet_cutter_relocation.cc).
+  void FindCrossed(const models::SweptQuad& sweep, const Eigen::Vector3d& lo,
+                   const Eigen::Vector3d& hi, double tolerance, const mesh::Points& x);
+  void KeepSevered(const models::SweptQuad& sweep, const Eigen::Vector3d& n, double tolerance,
+                   double inside_tolerance, const mesh::Points& x);
+  void RemoveSevered(CutStepResult* result);
+  void RepairPinches();
+  bool UndoIfPinched(size_t severed_removed, CutStepResult* result);
+  size_t CompactRemoved(size_t severed_removed);
+  void RelocateVertices(const models::SweptQuad& sweep, const Eigen::Vector3d& n,
+                        size_t severed_count, mesh::Points* positions, CutStepResult* result);
+
   Eigen::Vector3d Relocate(int32_t node, const Eigen::Vector3d& v, const Eigen::Vector3d& n,
                            const models::SweptQuad& sweep, const mesh::Points& x) const;
   bool InsideSwept(const Eigen::Vector3d& x, double tolerance) const;
@@ -134,6 +120,9 @@ class TetCutter {
   // Removes chosen_[0 .. count) unless that would leave a vertex in no alive tetrahedron;
   // whether it removed them.
   bool RemoveAllOrNone(int32_t count);
+  // Node k (0..3) of tetrahedron t: the tetrahedra are surface_'s.
+  int32_t tet_node(int k, Eigen::Index t) const { return surface_.tets()(k, t); }
+
   static constexpr int32_t kMaxFan = 256;
   std::array<int32_t, 3 * kMaxFan> link_{};
   std::array<int32_t, 3 * kMaxFan> link_parent_{};
@@ -143,7 +132,6 @@ class TetCutter {
   std::array<int32_t, kMaxFan> chosen_{};  // what RemoveAllOrNone takes
   std::array<int32_t, kMaxFan> group_{};
 
-  mesh::Tetrahedra tets_;
   int32_t num_nodes_ = 0;
   CutSettings settings_;
   std::vector<uint8_t> alive_;
@@ -151,7 +139,7 @@ class TetCutter {
   std::vector<int32_t> node_alive_;        // alive tets per node
   std::vector<int32_t> node_tet_offsets_;  // node -> tets (all, alive or not)
   std::vector<int32_t> node_tet_entries_;
-  Eigen::Matrix<int32_t, 4, Eigen::Dynamic> neighbours_;  // across each face, -1 outside
+  CutSurface surface_;  // the tetrahedra, their face neighbours (-1 outside), the extraction
   std::vector<uint8_t> on_surface_;
   uint32_t topology_version_ = 0;
 
