@@ -40,9 +40,9 @@ Publisher::Publisher(const PublisherOptions& options, runner::PhysicsRunner& run
     encoders_.push_back(std::make_unique<wire::FrameEncoder>(o.built.model->num_nodes(),
                                                              options.keyframe_interval));
     published_version_.push_back(o.topology_version);
-    surface_cutters_.push_back(
-        o.cutter ? std::make_unique<cutting::TetCutter>(o.built.volume.tetrahedra, o.built.rest())
-                 : nullptr);
+    cut_surfaces_.push_back(o.cutter ? std::make_unique<cutting::CutSurface>(
+                                           o.built.model->num_nodes(), o.built.volume.tetrahedra)
+                                     : nullptr);
   }
   for (int32_t k = 0; k < session_.num_rigid(); ++k) rigid_ids_.push_back(session_.rigid(k).id);
   grasps_.assign(static_cast<size_t>(session_.num_tools()), 0);
@@ -144,8 +144,7 @@ void Publisher::PublishTopologies() {
     const organs::BuiltOrgan& b = session_.organ(k).built;
     mesh::Triangles triangles = b.triangles;
     std::vector<uint8_t> inner(static_cast<size_t>(b.triangles.cols()), 0);
-    if (surface_cutters_[i])
-      surface_cutters_[i]->ExtractSurface(snapshot.alive, &triangles, &inner);
+    if (cut_surfaces_[i]) cut_surfaces_[i]->Extract(snapshot.alive, &triangles, &inner);
     published_version_[i] = snapshot.version;
     PublishTopology(k, snapshot.version, snapshot.rest, triangles, inner);
     encoders_[i]->ForceKeyframe();

@@ -16,7 +16,7 @@
 #include <vector>
 
 #include "common/wire/frame_codec.h"
-#include "server/cutting/tet_cutter.h"
+#include "server/cutting/cut_surface.h"
 #include "server/net/endpoints.h"
 #include "server/net/tool_link.h"
 #include "server/runner/physics_runner.h"
@@ -84,8 +84,9 @@ class Publisher {
   std::vector<std::string> organ_ids_;
   std::vector<std::unique_ptr<wire::FrameEncoder>> encoders_;
   std::vector<uint32_t> published_version_;  // per organ
-  // Per cut organ, the surface's extraction from alive flags (the physics keeps its own cutter).
-  std::vector<std::unique_ptr<cutting::TetCutter>> surface_cutters_;
+  // Per organ that can be cut, its cut surface (the physics's cutter has its own: a reset
+  // replaces that one while this thread may be extracting).
+  std::vector<std::unique_ptr<cutting::CutSurface>> cut_surfaces_;
   std::vector<std::string> rigid_ids_;
   std::vector<uint64_t> grasps_;
   std::map<std::string, uint64_t> event_counts_;
