@@ -1,35 +1,9 @@
 // Closed-surface mesher: a genus-0 triangle surface with an exact vertex count fitted to an
 // implicit solid (the built-in surface organs: spleen, kidney, gallbladder).
 //
-// The method (steps 1 and 2 are built from sphere_layout.h, step 3 is in closed_surface_mesher.cc):
-//  1. Layout. Exactly N points on the unit sphere in rings around the long axis (one vertex at
-//     each pole), zipped into strips. A closed triangulation of a sphere has F = 2V − 4 (Euler:
-//     V − E + F = 2 and 3F = 2E), so the triangle count follows from N. The rings are placed
-//     from a profile of the actual surface (measured with 32 × 16 rays from the centre through
-//     an "octant ellipsoid" fitted to the solid's reach along ±long axis and two cross axes):
-//     rings one equilateral-triangle height apart along the surface, ring sizes proportional to
-//     their perimeters, points evenly spread along each ring. When that layout would be tangled
-//     (a sparse mesh on a solid seen very obliquely from the centre), the plain latitude layout
-//     of the sphere is used instead.
-//  2. Mapping. Each layout point goes onto the surface along the ray from options.centre
-//     through it. Because the solid is star-shaped from the centre and every layout triangle is
-//     counter-clockwise seen from it, this radial map is an embedding with outward orientation.
-//  3. Relaxation, smoothing_iterations sweeps of:
-//     - edge flips that raise the smaller angle of the edge's two triangles (the max-min angle
-//       criterion, equivalent to Delaunay flipping in the plane: Lawson 1977; on surfaces see
-//       Dyer, Zhang, Möller, "Delaunay mesh construction", SGP 2007); flips keep the counts;
-//     - one Gauss–Seidel sweep of tangential smoothing: every vertex moves, within the mesh's
-//       tangent plane, towards the area-weighted average of its incident triangles' centroids,
-//       then back onto the surface (ProjectToSurface, refined by FindSegmentRoot along the
-//       normal where Newton stalls). This is the tangential relaxation of Botsch & Kobbelt,
-//       "A remeshing approach to multiresolution modeling", SGP 2004, §3 (an approximation of a
-//       centroidal Voronoi tessellation), which evens out triangle areas. Vertices whose
-//       neighbourhood has settled (moves below 1 % of the mean edge) are skipped.
-//     Every move and flip must leave its triangles counter-clockwise seen from the centre and
-//     facing along the solid's normals at their corners, so the mesh stays embedded (no fold,
-//     no self-intersection) throughout; a move that would break this is halved, then dropped.
-//  A final flip pass ends the relaxation. Everything runs in a fixed order: bit-identical output
-//  for the same input and build.
+// The method (a layout of exactly N points on the sphere, a radial map onto the solid, then
+// relaxation by edge flips and tangential smoothing; bit-identical for the same input):
+// docs/builtin_organs.md.
 //
 // Requirements on the solid: it must be star-shaped from options.centre (every ray from the
 // centre leaves the solid exactly once before leaving Bounds()), Value should be distance-like

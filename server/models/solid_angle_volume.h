@@ -1,44 +1,10 @@
 // Volume reaction of a closed shell through the solid angle at its surface nodes: seed 004
 // ("Моделирование объемных тел", SPEC §4.3). A pure, allocation-free kernel that the particle
-// models (position-based, mass-spring) add to their internal forces.
-//
-// Solid angle (seed 004 after Mazonka 2012, its ref. [6]). At surface node i with 1-ring unit
-// vectors s_1..s_n, s_j = (x_j − x_i)/|x_j − x_i|,
-//   Ω_i = 2π − Σ_j arg z_j,
-//   z_j = (s_{j−1}·s_j)(s_j·s_{j+1}) − s_{j−1}·s_{j+1} + i s_{j−1}·(s_j × s_{j+1})   (cyclic j).
-// arg z_j is the turning angle of the spherical polygon s_1..s_n at s_j (π minus its interior
-// angle there), so Ω_i is the polygon's area by Gauss–Bonnet. The seed writes arg Π_j z_j; the
-// sum of per-factor atan2 values in (−π, π] is the same angle modulo 2π without the wrap of the
-// product's argument, so Ω_i is continuous as long as no turning angle crosses ±π (the ring
-// would have to fold back onto itself). The rest value Ω_i0 uses the same formula.
-//
-// Convention (the seed leaves it open): Ω_i is the INTERIOR solid angle, the one the body fills
-// at node i: 2π on a flat patch, π/2 at a cube's corner, 2π(1 − cos θ) at the apex of a circular
-// cone of half-angle θ, less than 2π at a convex node and more than 2π in a dent. It is obtained
-// by ordering each ring clockwise seen from outside (the triangles are counter-clockwise seen
-// from outside, mesh_types.h); the opposite order gives the exterior angle 4π − Ω_i.
-//
-// Reaction. d_i = Ω_i − Ω_i0 [sr]. Seed 004 gives the reaction along the normal of the plane of
-// the neighbours as γ+ d² + σ+ d (d > 0) and γ− d² − σ− d (d < 0). Read literally the d < 0
-// branch has the same sign as the d > 0 one for γ−, σ− >= 0, which would not restore the shape.
-// Here the reaction is restoring on both sides, of magnitude γ± d² + σ± |d|, and derives from a
-// potential so that it conserves momentum, angular momentum and energy:
-//   E_i = σ± d²/2 + γ± |d|³/3   (± the sign of d),   E = Σ_i E_i,   f = −∂E/∂x,
-// so the generalised force conjugate to Ω_i is −dE_i/dd = −(σ± d + γ± d|d|), whose magnitude is
-// the seed's law σ±|d| + γ± d². It acts on node i and on its ring through the lever ∂Ω_i/∂x
-// [1/m]: f = −E_i'(d) ∂Ω_i/∂x for every node x of the term (exact analytic gradient). Since Ω_i
-// depends only on directions from x_i, the ring's forces sum to minus node i's (no net force)
-// and Ω_i is rotation invariant (no net torque).
-//
-// Relation to the seed's direction. For a regular ring (neighbours evenly spread on a circle)
-// ∂Ω_i/∂x_i lies, by symmetry, exactly along the normal of the neighbours' plane, pointing into
-// the body (moving node i inwards opens the angle); on an irregular ring it is close to that
-// normal (within 0.3° on an 80-vertex sphere mesh, tested). So a dent (d > 0) pushes node i
-// outwards and a bulge (d < 0) pulls it back, as the seed intends; the equal and opposite forces on
-// the ring are what makes the reaction a potential. The seed's force in newtons for node i's own
-// term equals ours with its σ, γ multiplied by |∂Ω_i/∂x_i| (about 1 / edge length).
-//
-// Units: E [J], Ω [sr], so σ± [J/sr²] and γ± [J/sr³]; forces [N], stiffness [N/m].
+// models (position-based, mass-spring) add to their internal forces. At each surface node the
+// restoring reaction to the change d = Ω − Ω0 of its interior solid angle (Mazonka's formula)
+// derives from the potential E = σ± d²/2 + γ± |d|³/3, with the exact analytic gradient over the
+// node and its ring; docs/models.md derives it and says where the seed is read. Units: E [J],
+// Ω [sr], σ± [J/sr²], γ± [J/sr³].
 #pragma once
 
 #include <Eigen/Core>
