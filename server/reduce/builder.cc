@@ -12,6 +12,7 @@
 #include <stdexcept>
 #include <utility>
 
+#include "common/checks/finite.h"
 #include "common/mesh/topology.h"
 #include "server/models/reduced/reduce_fem.h"
 
@@ -63,13 +64,11 @@ BuildReport BuildKlModel(const FemModel& full, const mesh::TetMesh& mesh, const 
   Require(!plan.fixed.empty(), "no support (fixed nodes): the organ would float");
   Require(!plan.forces.empty(), "no force magnitude");
   for (const double f : plan.forces) {
-    Require(std::isfinite(f) && f > 0.0, "a force magnitude is not > 0");
+    Require(checks::FinitePositive(f), "a force magnitude is not > 0");
   }
   Require(plan.directions == 1 || plan.directions == 3, "directions must be 1 or 3");
-  Require(std::isfinite(plan.creep_duration) && plan.creep_duration >= 0.0,
-          "creep_duration must be >= 0");
-  Require(std::isfinite(plan.creep_interval) && plan.creep_interval > 0.0,
-          "creep_interval must be > 0");
+  Require(checks::FiniteNonNegative(plan.creep_duration), "creep_duration must be >= 0");
+  Require(checks::FinitePositive(plan.creep_interval), "creep_interval must be > 0");
   Require(plan.load_steps > 0, "load_steps must be > 0");
   std::set<int32_t> held;
   for (const int32_t n : plan.fixed) {
@@ -255,9 +254,8 @@ NonlinearBuildReport BuildNonlinearModel(
     if (gamma_sum > 0.0 && gamma_sum < 1.0) magnitudes.push_back(largest / (1.0 - gamma_sum));
   }
   std::sort(magnitudes.begin(), magnitudes.end());
-  for (const double f : magnitudes) Require(std::isfinite(f) && f > 0.0, "a magnitude is not > 0");
-  Require(plan.tilts >= 0 && std::isfinite(plan.tilt_deg) && plan.tilt_deg >= 0.0 &&
-              plan.tilt_deg < 90.0,
+  for (const double f : magnitudes) Require(checks::FinitePositive(f), "a magnitude is not > 0");
+  Require(plan.tilts >= 0 && checks::FiniteNonNegative(plan.tilt_deg) && plan.tilt_deg < 90.0,
           "tilts must be >= 0 and tilt_deg in [0, 90)");
   // Every region node: its responses to 1 mN along the normal and two tangents (linear: the
   // tangent at rest, factorised once), then its static samples, each direction's magnitudes in

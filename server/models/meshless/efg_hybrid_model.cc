@@ -10,6 +10,7 @@
 #include <utility>
 #include <vector>
 
+#include "common/checks/finite.h"
 #include "server/models/fem/sparse_cholesky.h"
 #include "server/models/meshless/adaptivity.h"
 #include "server/models/meshless/efg_shared.h"
@@ -33,7 +34,7 @@ using RowMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::R
 constexpr double kFreeShift = 1.0;
 
 void CheckParameters(const EfgHybridParameters& p) {
-  if (!(p.region_radius > 0.0) || !std::isfinite(p.region_radius)) {
+  if (!checks::FinitePositive(p.region_radius)) {
     Refuse("region_radius [m] must be a finite value > 0");
   }
   if (!(p.follow_fraction > 0.0 && p.follow_fraction <= 1.0)) {

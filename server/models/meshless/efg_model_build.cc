@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "common/checks/finite.h"
 #include "server/models/meshless/efg_internal.h"
 #include "server/models/meshless/efg_model.h"
 #include "server/models/meshless/efg_shared.h"
@@ -30,12 +31,10 @@ void CheckEfgParameters(const EfgParameters& p, const std::string& prefix) {
     throw std::invalid_argument(prefix + what);
   };
   const auto finite_positive = [&fail](double value, const char* what) {
-    if (!(value > 0.0) || !std::isfinite(value))
-      fail(std::string(what) + " must be a finite value > 0");
+    if (!checks::FinitePositive(value)) fail(std::string(what) + " must be a finite value > 0");
   };
   const auto finite_non_negative = [&fail](double value, const char* what) {
-    if (!(value >= 0.0) || !std::isfinite(value))
-      fail(std::string(what) + " must be a finite value >= 0");
+    if (!checks::FiniteNonNegative(value)) fail(std::string(what) + " must be a finite value >= 0");
   };
   finite_positive(p.youngs_modulus, "youngs_modulus [Pa]");
   if (!(p.poisson_ratio > -1.0 && p.poisson_ratio < 0.5))

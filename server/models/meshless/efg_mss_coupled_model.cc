@@ -11,6 +11,7 @@
 #include <string>
 #include <utility>
 
+#include "common/checks/finite.h"
 #include "server/models/fem/sparse_cholesky.h"
 #include "server/models/meshless/efg_shared.h"
 #include "server/models/particle_mesh.h"
@@ -29,7 +30,7 @@ using Eigen::Vector4d;
 void CheckParameters(const EfgMssCoupledParameters& parameters) {
   CheckEfgParameters(parameters.efg, "efg-mss: efg.");
   const auto finite_non_negative = [](double value, const char* what) {
-    if (!(value >= 0.0) || !std::isfinite(value)) {
+    if (!checks::FiniteNonNegative(value)) {
       Refuse(std::string(what) + " must be a finite value >= 0");
     }
   };

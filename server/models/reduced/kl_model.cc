@@ -8,6 +8,8 @@
 #include <string>
 #include <utility>
 
+#include "common/checks/finite.h"
+
 namespace somasim::models::reduced {
 namespace {
 
@@ -52,7 +54,7 @@ std::unique_ptr<KlReducedModel> KlReducedModel::Create(KlModelData data) {
   Require(
       static_cast<Eigen::Index>(data.masses.size()) == nodes,
       "masses: " + std::to_string(data.masses.size()) + " for " + std::to_string(nodes) + " nodes");
-  for (const double m : data.masses) Require(std::isfinite(m) && m > 0.0, "a mass is not > 0");
+  for (const double m : data.masses) Require(checks::FinitePositive(m), "a mass is not > 0");
   const Eigen::Index n = data.modes.cols();
   Require(data.modes.rows() == 3 * nodes && n >= 1 && n <= 3 * nodes,
           "modes must be 3N × n with 1 <= n <= 3N, got " + std::to_string(data.modes.rows()) +
@@ -68,12 +70,9 @@ std::unique_ptr<KlReducedModel> KlReducedModel::Create(KlModelData data) {
   Require((data.reduced_stiffness - data.reduced_stiffness.transpose()).cwiseAbs().maxCoeff() <=
               1e-9 * scale,
           "the reduced stiffness is not symmetric");
-  Require(std::isfinite(data.creep_radius) && data.creep_radius >= 0.0,
-          "creep_radius must be >= 0");
-  Require(std::isfinite(data.penalty_stiffness) && data.penalty_stiffness > 0.0,
-          "penalty_stiffness must be > 0");
-  Require(std::isfinite(data.max_local_stiffness) && data.max_local_stiffness > 0.0,
-          "max_local_stiffness must be > 0");
+  Require(checks::FiniteNonNegative(data.creep_radius), "creep_radius must be >= 0");
+  Require(checks::FinitePositive(data.penalty_stiffness), "penalty_stiffness must be > 0");
+  Require(checks::FinitePositive(data.max_local_stiffness), "max_local_stiffness must be > 0");
   std::vector<uint8_t> has_curve(static_cast<size_t>(nodes), 0);
   for (size_t c = 0; c < data.creep.size(); ++c) {
     const CreepCurve& curve = data.creep[c];
@@ -83,10 +82,10 @@ std::unique_ptr<KlReducedModel> KlReducedModel::Create(KlModelData data) {
     Require(has_curve[static_cast<size_t>(curve.node)] == 0,
             which + "node " + std::to_string(curve.node) + " has another curve");
     has_curve[static_cast<size_t>(curve.node)] = 1;
-    Require(std::isfinite(curve.interval) && curve.interval > 0.0, which + "interval must be > 0");
+    Require(checks::FinitePositive(curve.interval), which + "interval must be > 0");
     Require(!curve.multiplier.empty(), which + "no sample");
     for (const double v : curve.multiplier) {
-      Require(std::isfinite(v) && v > 0.0, which + "a multiplier is not finite and > 0");
+      Require(checks::FinitePositive(v), which + "a multiplier is not finite and > 0");
     }
     Require(std::abs(curve.multiplier.front() - 1.0) <= 1e-6, which + "c(0) must be 1");
   }

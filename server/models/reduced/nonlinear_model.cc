@@ -9,6 +9,7 @@
 #include <string>
 #include <utility>
 
+#include "common/checks/finite.h"
 #include "server/models/fem/tet_elements.h"
 
 namespace somasim::models::reduced {
@@ -168,7 +169,7 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
   Require(
       static_cast<Eigen::Index>(data.masses.size()) == nodes,
       "masses: " + std::to_string(data.masses.size()) + " for " + std::to_string(nodes) + " nodes");
-  for (const double m : data.masses) Require(std::isfinite(m) && m > 0.0, "a mass is not > 0");
+  for (const double m : data.masses) Require(checks::FinitePositive(m), "a mass is not > 0");
   const Eigen::Index n = data.modes.cols();
   Require(data.modes.rows() == 3 * nodes && n >= 1 && n <= 3 * nodes,
           "modes must be 3N × n with 1 <= n <= 3N, got " + std::to_string(data.modes.rows()) +
@@ -185,7 +186,7 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
   Require(static_cast<Eigen::Index>(data.weights.size()) == m,
           "weights: " + std::to_string(data.weights.size()) + " for " + std::to_string(m) +
               " elements");
-  for (const double w : data.weights) Require(std::isfinite(w) && w > 0.0, "a weight is not > 0");
+  for (const double w : data.weights) Require(checks::FinitePositive(w), "a weight is not > 0");
   Require(data.elements.empty() || static_cast<Eigen::Index>(data.elements.size()) == m,
           "elements: " + std::to_string(data.elements.size()) + " for " + std::to_string(m) +
               " sampled elements");
@@ -205,17 +206,14 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
   Require(data.prony.size() <= fem::kMaxPronyTerms, "more than 4 Prony terms");
   double gamma_sum = 0.0;
   for (const fem::PronyTerm& t : data.prony) {
-    Require(std::isfinite(t.gamma) && t.gamma >= 0.0 && std::isfinite(t.tau) && t.tau > 0.0,
+    Require(checks::FiniteNonNegative(t.gamma) && checks::FinitePositive(t.tau),
             "a Prony term needs gamma >= 0 and tau > 0");
     gamma_sum += t.gamma;
   }
   Require(gamma_sum <= 1.0, "the Prony gammas sum above 1");
-  Require(std::isfinite(data.penalty_stiffness) && data.penalty_stiffness > 0.0,
-          "penalty_stiffness must be > 0");
-  Require(std::isfinite(data.max_local_stiffness) && data.max_local_stiffness > 0.0,
-          "max_local_stiffness must be > 0");
-  Require(std::isfinite(data.newton_tolerance) && data.newton_tolerance > 0.0,
-          "newton_tolerance must be > 0");
+  Require(checks::FinitePositive(data.penalty_stiffness), "penalty_stiffness must be > 0");
+  Require(checks::FinitePositive(data.max_local_stiffness), "max_local_stiffness must be > 0");
+  Require(checks::FinitePositive(data.newton_tolerance), "newton_tolerance must be > 0");
   Require(data.max_newton_iterations >= 1, "max_newton_iterations must be >= 1");
   const auto c = static_cast<Eigen::Index>(data.correction_nodes.size());
   Require(data.corrections.size() == 0
@@ -233,7 +231,7 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
               " magnitudes and c = " + std::to_string(c) + " nodes");
   for (size_t k = 0; k < data.correction_magnitudes.size(); ++k) {
     const double f = data.correction_magnitudes[k];
-    Require(std::isfinite(f) && f > 0.0 && (k == 0 || f > data.correction_magnitudes[k - 1]),
+    Require(checks::FinitePositive(f) && (k == 0 || f > data.correction_magnitudes[k - 1]),
             "correction_magnitudes must be finite, > 0 and increasing");
   }
   Require(data.correction_scales.allFinite() && (data.correction_scales.array() >= 0.0).all(),
