@@ -139,11 +139,28 @@ class EfgHybridModel final : public TissueModel {
 
  private:
   EfgHybridModel();
+  // The region. Partition: the kept nodes around `centre`, the extension
+  // T, S⁻¹, D, the reduced M_r, K_r, P_r and gravity's far response, from the static factor.
   void Partition(const Eigen::Vector3d& centre, TissueState* state) const;
   // Marks the nodes the intensity adds to the region; true when the region must change.
   bool Adapt(TissueState* state) const;
+  // Factorises K̃ for the state's supports (and cut); false when it cannot.
   bool FactoriseStatic(TissueState* state) const;
+  // The far response of node-point loads (3N): physical offsets into `offsets`, the parameters'
+  // in the state's full_solution.
   void ParticularResponse(const double* node_loads, double* offsets, TissueState* state) const;
+  // Advance's stages. 1: the supports and the distinct attached nodes
+  // (false: more than the slots). 2: the static factor and the region, partitioned again when
+  // the supports, a cut, the tool or the adaptivity move it (false: K̃ cannot be factorised).
+  // 3: A's factor and the attached nodes' slots (false: A is not positive definite). 4: the
+  // far response of the loads that reach far parameters. 5: the right-hand side b.
+  bool GatherSupportsAndTools(const StepInputs& inputs, TissueState* state) const;
+  bool UpdateRegion(const StepInputs& inputs, TissueState* state) const;
+  bool PrepareStepFactor(double dt, TissueState* state) const;
+  void UpdateFarLoads(const StepInputs& inputs, TissueState* state) const;
+  void AssembleRightHandSide(const StepInputs& inputs, TissueState* state) const;
+  // The tools' low-rank update: slot `slot`'s Z columns A⁻¹ D_Iᵀ and G's row; the correction
+  // of the solution in the state's b (false: not positive definite, the step is rejected).
   void FillSlot(int32_t slot, int32_t node, TissueState* state) const;
   bool CorrectForAttachments(double dt, TissueState* state) const;
 

@@ -94,6 +94,9 @@
 
 namespace somasim::models::meshless {
 
+struct EfgSystem;  // efg_system.h
+struct EfgValues;
+
 struct EfgParameters {
   double youngs_modulus = 5000.0;    // E [Pa], finite, > 0 (seed 001's liver)
   double poisson_ratio = 0.35;       // ν [-], in (-1, 0.5) (seed 001's liver)
@@ -154,7 +157,7 @@ class EfgModel final : public TissueModel {
                                                const EfgParameters& parameters);
   ~EfgModel() override;
 
-  int32_t num_nodes() const override { return static_cast<int32_t>(rest_.cols()); }
+  int32_t num_nodes() const override;
   std::unique_ptr<TissueState> MakeState() const override;
   // The tissue's condensed static stiffness at node I's point, (Φ_I K_s⁻¹ Φ_Iᵀ)⁻¹ [N/m] (3 × 3,
   // symmetric positive definite): the force a static point displacement of the node costs with
@@ -194,11 +197,11 @@ class EfgModel final : public TissueModel {
 
   // For tests and later slices.
   const MlsShapeFunctions& shape_functions() const { return *shape_; }
-  const std::vector<double>& masses() const { return mass_; }   // m_I [kg], num_nodes
-  const mesh::Points& rest_positions() const { return rest_; }  // X [m], 3 × num_nodes
-  double penalty() const { return penalty_; }                   // κ [N/m]
+  const std::vector<double>& masses() const;   // m_I [kg], num_nodes
+  const mesh::Points& rest_positions() const;  // X [m], 3 × num_nodes
+  double penalty() const;                      // κ [N/m]
   int64_t num_gauss_points() const { return num_gauss_; }
-  int64_t stiffness_blocks() const { return static_cast<int64_t>(block_row_.size()); }
+  int64_t stiffness_blocks() const;
   // The state's nodal parameters û [m], 3 × num_nodes.
   const mesh::Points& NodalParameters(const TissueState& state) const;
   // u(x) = Σ φ_J(x) û_J and its gradient ∇u (∂u_i/∂x_j) at a point x [m], for the state's û
@@ -224,32 +227,23 @@ class EfgModel final : public TissueModel {
   void Advance(const StepInputs& inputs, TissueState* state) const override;
 
  private:
-  friend class EfgHybridModel;  // reduces this model: reads its matrices and shape functions
+  friend class EfgHybridModel;  // reduces this model: reads its system and shape functions
   EfgModel();
-  struct Factors;  // Φ's sparse LU (for û from positions), kept out of this header
+  // FromTetMesh's stages after the checks: the shape functions and Φ's rows (with each node's
+  // longest incident tet edge); the Gauss points and the lower block pattern of the node pairs
+  // that share a Gauss or a node point; K, then M̂ and the rest (EfgSystem::Finish).
+  void BuildShapeFunctions(const mesh::TetMesh& mesh, const EfgParameters& parameters);
+  void BuildGaussPointsAndPattern(const mesh::TetMesh& mesh, const std::vector<double>& volume,
+                                  int gauss_points);
+  void BuildStiffness();
   // The values the kernels read: the model's, or a cut's (EfgCutValues).
-  struct Values {
-    const double* phi;  // Φ's entries on its pattern
-    const double* k;    // K's blocks, 9 × blocks
-    const double* m;    // M̂'s coefficients, blocks
-  };
-  Values ValuesOf(const EfgCutValues* cut) const;
-
-  // y = K x (x, y 3 × num_nodes flat) by the symmetric lower block storage.
-  void MultiplyStiffness(const Values& values, const double* x, double* y) const;
-  // y = Φ x and y = Φᵀ x (3 × num_nodes flat each).
-  void MultiplyPhi(const Values& values, const double* x, double* y) const;
-  void MultiplyPhiTransposed(const Values& values, const double* x, double* y) const;
-  // k_scale K + m_scale M̂ + s_scale Σ_I s_I Φ_Iᵀ Φ_I (s: num_nodes [N/m]) into `blocks`
-  // (9 × blocks, the lower block pattern) and gathered into `values` (the scalar lower CSC
-  // pattern).
-  void AssembleSystem(const Values& matrices, double k_scale, double m_scale, double s_scale,
-                      const double* s, double* blocks, double* values) const;
+  EfgValues ValuesOf(const EfgCutValues* cut) const;
   // Adds sign × a Gauss point's contribution w Bᵀ D B (its MLS evaluation with gradients, its
   // weight w = rule weight × volume [m³]) to K's blocks.
   void AddGaussPoint(const MlsEvaluation& eval, double w, double sign, double* k_blocks) const;
-  // The index of block (row, col), row >= col, in the lower block pattern.
-  int64_t BlockIndex(int32_t row, int32_t col) const;
+  // Step 1 of Advance: the springs at the node points (supports and attachments) and the
+  // distinct attached nodes.
+  void GatherSprings(const StepInputs& inputs, TissueState* state) const;
   // Step 2 of Advance: makes the state's factors current (the step's system with the supports
   // only, on the low-rank path, or with the attachments too; the static K_s) and, on the
   // low-rank path, the cached Z and G of this step's attached nodes. False when the step's
@@ -262,30 +256,13 @@ class EfgModel final : public TissueModel {
   // rejected).
   bool CorrectForAttachments(double dt, TissueState* state) const;
 
-  mesh::Points rest_;  // X [m], 3 × num_nodes
+  // The nodes, Φ (the system's rows R), K and M̂ on their patterns (efg_system.h).
+  std::unique_ptr<EfgSystem> system_;
   // The Gauss points [m] (3 × num_gauss, tet by tet) and their weights w |J| [m³] (num_gauss).
   mesh::Points gauss_x_;
   std::vector<double> gauss_w_;
   std::unique_ptr<MlsShapeFunctions> shape_;
-  std::vector<double> mass_;  // m_I [kg], num_nodes
-  // Φ by rows: node I's row is phi_node_/phi_value_[phi_start_[I] .. phi_start_[I+1]).
-  std::vector<int32_t> phi_start_, phi_node_;
-  std::vector<double> phi_value_;
-  // The lower block pattern of K and A: column c's blocks are block_row_[block_start_[c] ..
-  // block_start_[c+1]) (sorted rows >= c, the diagonal first); K's 3 × 3 blocks column-major at
-  // 9 × block index; M̂'s scalar coefficient (times I) per block.
-  std::vector<int64_t> block_start_;
-  std::vector<int32_t> block_row_;
-  std::vector<double> k_blocks_;  // [N/m], 9 × blocks
-  std::vector<double> m_blocks_;  // [kg], blocks
-  // The scalar lower CSC pattern (3N columns) and, per scalar entry, its block index and place
-  // in the block (b * 9 + r + 3 c).
-  std::vector<int32_t> csc_col_start_, csc_rows_;
-  std::vector<int64_t> csc_source_;
-  std::unique_ptr<Factors> factors_;
   double lambda_ = 0.0, mu_ = 0.0;  // Lamé [Pa]
-  double rayleigh_mass_ = 0.0, rayleigh_stiffness_ = 0.0;
-  double penalty_ = 0.0;  // κ [N/m]: the penalty springs
   int64_t num_gauss_ = 0;
   int32_t max_low_rank_nodes_ = 0;
 };

@@ -53,6 +53,8 @@
 
 namespace somasim::models::meshless {
 
+struct EfgSystem;  // efg_system.h
+
 struct EfgMssCoupledParameters {
   // The material (E, ν for the EFG; E and ρ for the springs and masses), the EFG discretisation
   // (MLS, support factor, Gauss points), Rayleigh damping, penalty_factor and speed_limit.
@@ -74,7 +76,7 @@ class EfgMssCoupledModel final : public TissueModel {
                                                          const EfgMssCoupledParameters& parameters);
   ~EfgMssCoupledModel() override;
 
-  int32_t num_nodes() const override { return static_cast<int32_t>(rest_.cols()); }
+  int32_t num_nodes() const override;
   std::unique_ptr<TissueState> MakeState() const override;
   // (G_I K_s⁻¹ G_Iᵀ)⁻¹ [N/m], K_s = K + the supports' penalties of the state's last step (as
   // EfgModel's). Zero before the first step and without supports. Cached per node until the
@@ -97,11 +99,11 @@ class EfgMssCoupledModel final : public TissueModel {
   int32_t num_meshless_tets() const { return num_meshless_tets_; }
   bool IsEfgNode(int32_t node) const { return efg_of_node_[size_t(node)] >= 0; }
   const std::vector<double>& spring_stiffness() const { return spring_k_; }  // [N/m], springs
-  const std::vector<double>& masses() const { return mass_; }                // m_I [kg], nodes
-  const mesh::Points& rest_positions() const { return rest_; }               // X [m], 3 × nodes
-  double penalty() const { return penalty_; }                                // κ [N/m]
+  const std::vector<double>& masses() const;                                 // m_I [kg], nodes
+  const mesh::Points& rest_positions() const;                                // X [m], 3 × nodes
+  double penalty() const;                                                    // κ [N/m]
   int64_t num_gauss_points() const { return num_gauss_; }
-  int64_t stiffness_blocks() const { return static_cast<int64_t>(block_row_.size()); }
+  int64_t stiffness_blocks() const;
   int64_t Factorisations(const TissueState& state) const;  // the step's and the static factor
   // The state's unknowns q [m], 3 × num_nodes (E's parameters, then the MSS-only displacements).
   const mesh::Points& Unknowns(const TissueState& state) const;
@@ -113,42 +115,20 @@ class EfgMssCoupledModel final : public TissueModel {
 
  private:
   EfgMssCoupledModel();
-  struct Factors;  // G's sparse LU (q from positions), kept out of this header
-
-  void MultiplyStiffness(const double* x, double* y) const;  // y = K x (3 × num_nodes flat)
-  void MultiplyG(const double* x, double* y) const;          // y = G x
-  void MultiplyGTransposed(const double* x, double* y) const;
-  // k_scale K + m_scale M̂ + s_scale Σ_I s_I G_Iᵀ G_I into `blocks` (9 × blocks) and gathered
-  // into `values` (the scalar lower CSC pattern).
-  void AssembleSystem(double k_scale, double m_scale, double s_scale, const double* s,
-                      double* blocks, double* values) const;
-  int64_t BlockIndex(int32_t row, int32_t col) const;  // -1 when not in the pattern
+  // FromTetMesh's stages after the checks (efg_mss_coupled_model.cc).
+  struct Build;
   // Makes the step's factor (dt, the springs' stiffness) and the static factor (the supports)
   // current. False when the step's system is not positive definite.
   bool PrepareFactors(double dt, TissueState* state) const;
 
-  mesh::Points rest_;         // X [m], 3 × num_nodes
-  std::vector<double> mass_;  // m_I [kg], num_nodes
+  // The nodes, G (the system's rows R), K and M̂ on their patterns (efg_system.h).
+  std::unique_ptr<EfgSystem> system_;
   int32_t num_efg_ = 0, num_interface_ = 0, num_meshless_tets_ = 0;
   std::vector<int32_t> efg_of_node_;  // index in E or -1, num_nodes
-  // G by rows: node I's row is g_col_/g_value_[g_start_[I] .. g_start_[I+1]) (sorted columns).
-  std::vector<int32_t> g_start_, g_col_;
-  std::vector<double> g_value_;
   // The springs: nodes, stiffness k [N/m], rest direction e (3 × springs).
   std::vector<int32_t> spring_a_, spring_b_;
   std::vector<double> spring_k_;
   mesh::Points spring_dir_;
-  // The lower block pattern of K and A (as EfgModel's): column c's blocks are
-  // block_row_[block_start_[c] .. block_start_[c+1]), sorted, the diagonal first.
-  std::vector<int64_t> block_start_;
-  std::vector<int32_t> block_row_;
-  std::vector<double> k_blocks_;  // [N/m], 9 × blocks
-  std::vector<double> m_blocks_;  // [kg], blocks (times I₃)
-  std::vector<int32_t> csc_col_start_, csc_rows_;
-  std::vector<int64_t> csc_source_;
-  std::unique_ptr<Factors> factors_;
-  double rayleigh_mass_ = 0.0, rayleigh_stiffness_ = 0.0;
-  double penalty_ = 0.0;  // κ [N/m]
   int64_t num_gauss_ = 0;
 };
 
