@@ -1,5 +1,5 @@
-// Internal to EfgHybridModel (efg_hybrid_model.cc): its state and the helpers it uses. Not part
-// of the model's interface.
+// Internal to EfgHybridModel's translation units (efg_hybrid_model.cc, efg_hybrid_region.cc,
+// efg_hybrid_step.cc): its state and the helpers they share. Not part of the model's interface.
 #pragma once
 
 #include <Eigen/Cholesky>

@@ -139,7 +139,7 @@ class EfgHybridModel final : public TissueModel {
 
  private:
   EfgHybridModel();
-  // The region. Partition: the kept nodes around `centre`, the extension
+  // The region (efg_hybrid_region.cc). Partition: the kept nodes around `centre`, the extension
   // T, S⁻¹, D, the reduced M_r, K_r, P_r and gravity's far response, from the static factor.
   void Partition(const Eigen::Vector3d& centre, TissueState* state) const;
   // Marks the nodes the intensity adds to the region; true when the region must change.
@@ -149,7 +149,7 @@ class EfgHybridModel final : public TissueModel {
   // The far response of node-point loads (3N): physical offsets into `offsets`, the parameters'
   // in the state's full_solution.
   void ParticularResponse(const double* node_loads, double* offsets, TissueState* state) const;
-  // Advance's stages. 1: the supports and the distinct attached nodes
+  // Advance's stages (efg_hybrid_step.cc). 1: the supports and the distinct attached nodes
   // (false: more than the slots). 2: the static factor and the region, partitioned again when
   // the supports, a cut, the tool or the adaptivity move it (false: K̃ cannot be factorised).
   // 3: A's factor and the attached nodes' slots (false: A is not positive definite). 4: the
