@@ -1,6 +1,5 @@
 #include "server/models/reduced/kl_model.h"
 
-#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -9,6 +8,7 @@
 #include <utility>
 
 #include "common/checks/finite.h"
+#include "server/models/particle_mesh.h"
 
 namespace somasim::models::reduced {
 namespace {
@@ -48,18 +48,9 @@ void Require(bool ok, const std::string& what) {
 }  // namespace
 
 std::unique_ptr<KlReducedModel> KlReducedModel::Create(KlModelData data) {
+  CheckModalData(data.rest, data.masses, data.modes, "reduced model: ");
   const Eigen::Index nodes = data.rest.cols();
-  Require(nodes >= 1, "rest has no node");
-  Require(data.rest.allFinite(), "rest positions are not finite");
-  Require(
-      static_cast<Eigen::Index>(data.masses.size()) == nodes,
-      "masses: " + std::to_string(data.masses.size()) + " for " + std::to_string(nodes) + " nodes");
-  for (const double m : data.masses) Require(checks::FinitePositive(m), "a mass is not > 0");
   const Eigen::Index n = data.modes.cols();
-  Require(data.modes.rows() == 3 * nodes && n >= 1 && n <= 3 * nodes,
-          "modes must be 3N × n with 1 <= n <= 3N, got " + std::to_string(data.modes.rows()) +
-              " × " + std::to_string(n) + " for N = " + std::to_string(nodes));
-  Require(data.modes.allFinite(), "a mode is not finite");
   Require(data.stiffness_modes.rows() == data.modes.rows() && data.stiffness_modes.cols() == n,
           "stiffness_modes (K B) must have the modes' shape");
   Require(data.stiffness_modes.allFinite(), "K B is not finite");
@@ -197,13 +188,7 @@ Eigen::Matrix3d KlReducedModel::LocalStiffness(const TissueState& state, int32_t
   if (node < 0 || node >= num_nodes()) return Eigen::Matrix3d::Zero();
   const Eigen::Matrix3d compliance =
       CreepMultiplier(state) * compliance_[static_cast<size_t>(node)];
-  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eigen(compliance);
-  Eigen::Vector3d stiffness;
-  for (int k = 0; k < 3; ++k) {
-    const double c = eigen.eigenvalues()(k);
-    stiffness(k) = c * data_.max_local_stiffness > 1.0 ? 1.0 / c : data_.max_local_stiffness;
-  }
-  return eigen.eigenvectors() * stiffness.asDiagonal() * eigen.eigenvectors().transpose();
+  return CappedStiffness(compliance, data_.max_local_stiffness);
 }
 
 void KlReducedModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
@@ -217,12 +202,7 @@ EnergyReport KlReducedModel::Energy(const TissueState& state,
   EnergyReport e;
   const Eigen::VectorXd& xi = Coordinates(state);
   e.elastic = 0.5 * xi.dot(data_.reduced_stiffness * xi);
-  for (Eigen::Index i = 0; i < data_.rest.cols(); ++i) {
-    const double m = data_.masses[static_cast<size_t>(i)];
-    e.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
-    e.gravity -= m * gravity.dot(state.positions.col(i));
-    e.momentum += m * state.velocities.col(i);
-  }
+  AddKineticAndGravity(data_.masses, state, gravity, &e);
   return e;
 }
 

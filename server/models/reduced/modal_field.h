@@ -13,6 +13,7 @@
 #include <Eigen/Core>
 #include <cstddef>
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
@@ -68,6 +69,17 @@ class ModalState : public TissueState {
   const ModalField* field_ = nullptr;
   const double* rest_ = nullptr;
 };
+
+// The data both reduced models check first: rest positions X (3 × N, N >= 1, finite), N masses
+// [kg] (each finite and > 0), modes B (3N × n, 1 <= n <= 3N, finite). Throws
+// std::invalid_argument(prefix + what is wrong).
+void CheckModalData(const mesh::Points& rest, const std::vector<double>& masses,
+                    const Eigen::MatrixXd& modes, const std::string& prefix);
+
+// A node's stiffness [N/m] from its compliance C [m/N] (3 × 3, symmetric): C⁻¹ in C's
+// eigenbasis, each direction's stiffness capped at max_stiffness [N/m] (where the modes barely
+// move the node, C⁻¹ would be huge or infinite).
+Eigen::Matrix3d CappedStiffness(const Eigen::Matrix3d& compliance, double max_stiffness);
 
 // r += Bᵀ f (B 3N × n, f 3 × N [N], r n): tools load a few nodes, so blocks of 8 nodes whose 24
 // values are all ±0 are skipped on an OR of their bits without the sign (a loop the compiler

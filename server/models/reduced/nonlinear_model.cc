@@ -1,6 +1,5 @@
 #include "server/models/reduced/nonlinear_model.h"
 
-#include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 #include <algorithm>
 #include <cmath>
@@ -11,6 +10,7 @@
 
 #include "common/checks/finite.h"
 #include "server/models/fem/tet_elements.h"
+#include "server/models/particle_mesh.h"
 
 namespace somasim::models::reduced {
 namespace {
@@ -163,18 +163,9 @@ Eigen::Matrix<double, 9, Eigen::Dynamic> ElementGradientMap(
 }
 
 std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearModelData data) {
+  CheckModalData(data.rest, data.masses, data.modes, "nonlinear reduced model: ");
   const Eigen::Index nodes = data.rest.cols();
-  Require(nodes >= 1, "rest has no node");
-  Require(data.rest.allFinite(), "rest positions are not finite");
-  Require(
-      static_cast<Eigen::Index>(data.masses.size()) == nodes,
-      "masses: " + std::to_string(data.masses.size()) + " for " + std::to_string(nodes) + " nodes");
-  for (const double m : data.masses) Require(checks::FinitePositive(m), "a mass is not > 0");
   const Eigen::Index n = data.modes.cols();
-  Require(data.modes.rows() == 3 * nodes && n >= 1 && n <= 3 * nodes,
-          "modes must be 3N × n with 1 <= n <= 3N, got " + std::to_string(data.modes.rows()) +
-              " × " + std::to_string(n) + " for N = " + std::to_string(nodes));
-  Require(data.modes.allFinite(), "a mode is not finite");
   Require(data.test_modes.size() == 0 ||
               (data.test_modes.rows() == data.modes.rows() && data.test_modes.cols() == n),
           "test_modes must be empty or 3N × n like the modes, got " +
@@ -386,6 +377,137 @@ std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
   return state;
 }
 
+// One step's Newton iteration on r(ξ) = 0: the step's QLV context and springs, the residual and
+// the tangent's factor at a point, and the loop.
+struct NonlinearReducedModel::Newton {
+  const NonlinearReducedModel& model;
+  NonlinearState* s;
+  bool springs;           // springs act this step (s->springs, s->spring_rhs)
+  double g;               // QLV's g (1: elastic)
+  const double* offset;   // QLV's offsets (9 × m), or nullptr without Prony terms
+  double residual_floor;  // tol × the largest load carried so far
+  double scale = 0.0;     // |Ψᵀ f_ext| + |Ψᵀ f_int| (+ |springs|) at the last evaluation
+
+  // r at ξ (into s->residual; s->grad and s->stress follow ξ); false if an element inverts or
+  // a value is not finite.
+  bool Evaluate(const Eigen::VectorXd& xi, double* norm) {
+    s->grad.noalias() = model.gradient_map_ * xi;
+    if (!model.Stresses(s->grad.data(), g, offset, s->stress.data())) return false;
+    s->internal.noalias() = -(model.TestMap().transpose() * s->stress);
+    s->residual = s->external + s->internal;
+    scale = s->external.norm() + s->internal.norm();
+    if (springs) {
+      s->residual += s->spring_rhs;
+      s->residual.noalias() -= s->springs * xi;
+      scale += s->spring_rhs.norm();
+    }
+    *norm = s->residual.norm();
+    return std::isfinite(*norm);
+  }
+  // The factor of the tissue's tangent plus the springs: with `assemble`, the tissue's tangent
+  // at ξ first (s->grad must be ξ's; O(|E| (81 n + 9 n²)), the expensive part), else the last
+  // one assembled (an n × n factorisation, O(n³ / 3): what a change of springs costs).
+  bool Refactor(bool assemble) {
+    if (assemble) {
+      model.TangentFactors(s->grad.data(), g, offset, s->factors.data());
+      s->tissue_tangent.noalias() = model.TestMap().transpose() * s->factors;
+    }
+    s->tangent = s->tissue_tangent;
+    if (springs) s->tangent += s->springs;
+    return s->Factorise();
+  }
+  bool Met(double norm) const {
+    return norm <= std::max(model.data_.newton_tolerance * scale, residual_floor);
+  }
+
+  // Newton's method from s->xi (or the predictor s->trial, when `extrapolate` and its residual
+  // is the smaller), reusing the last factor while it halves the residual, with a backtracking
+  // line search on |r| (a correction that inverts an element or raises |r| is halved; with a
+  // reused factor, the tangent is refreshed first). Adds its iterations to the state's
+  // counters. False when the step must be rejected; *converged when |r| met the tolerance.
+  bool Solve(const StepInputs& inputs, bool extrapolate, bool* converged) {
+    double norm = 0.0;
+    bool ok = Evaluate(s->xi, &norm);
+    double predicted = 0.0;
+    if (ok && extrapolate && Evaluate(s->trial, &predicted)) {
+      if (predicted < norm) {  // the buffers hold the predictor's r, grad and stress
+        s->xi = s->trial;
+        norm = predicted;
+      } else {
+        ok = Evaluate(s->xi, &norm);
+      }
+    } else if (ok && extrapolate) {
+      ok = Evaluate(s->xi, &norm);
+    }
+    *converged = false;
+    // When the springs differ from those of the factor (their stiffness dwarfs the tissue's: a
+    // factor without them barely helps), the factor is remade with them on the last tissue
+    // tangent — cheap; the same springs with moved targets (a grasp being pulled) keep it.
+    double signature = 0.0;
+    if (springs) {
+      for (const Attachment& a : inputs.attachments) {
+        signature += (a.node + 1.0) * (1.0 + 1e-3 * a.stiffness);
+      }
+      signature += 7.0 * static_cast<double>(inputs.prescribed_nodes.size());
+      signature += 1e-9 * s->springs.trace();
+    }
+    if (ok && signature != s->factor_springs) {
+      s->factor_springs = signature;
+      ok = Refactor(false);
+    }
+    bool refresh = false, fresh = false;
+    int iterations = 0;
+    while (ok) {
+      if (Met(norm) || norm == 0.0) {
+        *converged = true;
+        break;
+      }
+      if (iterations >= model.data_.max_newton_iterations) break;
+      if (refresh && !fresh) {
+        if (!Refactor(true)) {
+          ok = false;
+          break;
+        }
+        fresh = true;
+      }
+      s->delta = s->residual;
+      s->SolveInPlace(s->delta);
+      double alpha = 1.0, trial_norm = 0.0;
+      int halvings = 0;
+      while (true) {
+        s->trial = s->xi + alpha * s->delta;
+        const bool trial_ok = Evaluate(s->trial, &trial_norm);
+        if (trial_ok && (trial_norm < norm || Met(trial_norm))) break;
+        if (!fresh) {  // a stale factor's direction: refresh it at ξ and start again
+          double again = 0.0;
+          ok = Evaluate(s->xi, &again) && Refactor(true);
+          if (!ok) break;
+          fresh = true;
+          s->delta = s->residual;
+          s->SolveInPlace(s->delta);
+          alpha = 1.0;
+          continue;
+        }
+        if (++halvings > 12) break;  // no progress (rounding): keep ξ, unconverged
+        alpha *= 0.5;
+      }
+      if (!ok) break;
+      if (halvings > 12) {
+        double again = 0.0;
+        ok = Evaluate(s->xi, &again);  // grad and stress back at ξ
+        break;
+      }
+      s->xi = s->trial;  // s->residual, grad and stress are the trial's
+      ++iterations;
+      refresh = trial_norm > 0.5 * norm;
+      fresh = false;
+      norm = trial_norm;
+    }
+    s->counters.solver_iterations += iterations;
+    return ok;
+  }
+};
+
 void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base) const {
   auto* s = static_cast<NonlinearState*>(base);
   // Loads: gravity and the tool's forces (projected), then the springs' constant part.
@@ -398,132 +520,19 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
                   inputs, s->positions, &s->springs, &s->spring_rhs);
   const double g = BeginViscous(data_.prony, inputs.dt, s->history, s->elastic_last, &s->offset);
   const double* offset = data_.prony.empty() ? nullptr : s->offset.data();
-  // Newton's method, reusing the last factor while it halves the residual, with a backtracking
-  // line search on |r| (a correction that inverts an element or raises |r| is halved; with a
-  // reused factor, the tangent is refreshed first).
-  // The predictor: the last step's change again (a smooth load history at 1 kHz then starts
-  // Newton next to the answer), when the step is as long as the last one and its residual is
-  // the smaller.
   // Converged at |r| <= tol × max(|Ψᵀ f_ext| + |Ψᵀ f_int| (+ springs), the largest load of a
   // converged step so far): with no load at all (a release, the tissue recovering) the first
   // alone cannot be met but in rounding, and each step would run to its limit.
   const double applied = s->external.norm() + (springs ? s->spring_rhs.norm() : 0.0);
-  const double residual_floor = data_.newton_tolerance * s->load_scale;
+  Newton newton{*this, s, springs, g, offset, data_.newton_tolerance * s->load_scale};
+  // The predictor: the last step's change again (a smooth load history at 1 kHz then starts
+  // Newton next to the answer), when the step is as long as the last one.
   const bool extrapolate = s->dt == inputs.dt;
   s->trial = s->xi + (s->xi - s->xi_prev);
   s->xi_prev = s->xi;
   s->dt = inputs.dt;
-  double scale = 0.0;
-  // r at ξ (into s->residual; s->grad and s->stress follow ξ); false if an element inverts or a
-  // value is not finite.
-  const auto evaluate = [&](const Eigen::VectorXd& xi, double* norm) {
-    s->grad.noalias() = gradient_map_ * xi;
-    if (!Stresses(s->grad.data(), g, offset, s->stress.data())) return false;
-    s->internal.noalias() = -(TestMap().transpose() * s->stress);
-    s->residual = s->external + s->internal;
-    scale = s->external.norm() + s->internal.norm();
-    if (springs) {
-      s->residual += s->spring_rhs;
-      s->residual.noalias() -= s->springs * xi;
-      scale += s->spring_rhs.norm();
-    }
-    *norm = s->residual.norm();
-    return std::isfinite(*norm);
-  };
-  // The factor of the tissue's tangent plus the springs: with `assemble`, the tissue's tangent
-  // at ξ first (s->grad must be ξ's; O(|E| (81 n + 9 n²)), the expensive part), else the last
-  // one assembled (an n × n factorisation, O(n³ / 3): what a change of springs costs).
-  const auto refactor = [&](bool assemble) {
-    if (assemble) {
-      TangentFactors(s->grad.data(), g, offset, s->factors.data());
-      s->tissue_tangent.noalias() = TestMap().transpose() * s->factors;
-    }
-    s->tangent = s->tissue_tangent;
-    if (springs) s->tangent += s->springs;
-    return s->Factorise();
-  };
-  double norm = 0.0;
-  bool ok = evaluate(s->xi, &norm);
-  double predicted = 0.0;
-  if (ok && extrapolate && evaluate(s->trial, &predicted)) {
-    if (predicted < norm) {  // the buffers hold the predictor's r, grad and stress
-      s->xi = s->trial;
-      norm = predicted;
-    } else {
-      ok = evaluate(s->xi, &norm);
-    }
-  } else if (ok && extrapolate) {
-    ok = evaluate(s->xi, &norm);
-  }
   bool converged = false;
-  // When the springs differ from those of the factor (their stiffness dwarfs the tissue's: a
-  // factor without them barely helps), the factor is remade with them on the last tissue
-  // tangent — cheap; the same springs with moved targets (a grasp being pulled) keep it.
-  double signature = 0.0;
-  if (springs) {
-    for (const Attachment& a : inputs.attachments) {
-      signature += (a.node + 1.0) * (1.0 + 1e-3 * a.stiffness);
-    }
-    signature += 7.0 * static_cast<double>(inputs.prescribed_nodes.size());
-    signature += 1e-9 * s->springs.trace();
-  }
-  if (ok && signature != s->factor_springs) {
-    s->factor_springs = signature;
-    ok = refactor(false);
-  }
-  bool refresh = false, fresh = false;
-  int iterations = 0;
-  while (ok) {
-    if (norm <= std::max(data_.newton_tolerance * scale, residual_floor) || norm == 0.0) {
-      converged = true;
-      break;
-    }
-    if (iterations >= data_.max_newton_iterations) break;
-    if (refresh && !fresh) {
-      if (!refactor(true)) {
-        ok = false;
-        break;
-      }
-      fresh = true;
-    }
-    s->delta = s->residual;
-    s->SolveInPlace(s->delta);
-    double alpha = 1.0, trial_norm = 0.0;
-    int halvings = 0;
-    while (true) {
-      s->trial = s->xi + alpha * s->delta;
-      const bool trial_ok = evaluate(s->trial, &trial_norm);
-      if (trial_ok && (trial_norm < norm ||
-                       trial_norm <= std::max(data_.newton_tolerance * scale, residual_floor))) {
-        break;
-      }
-      if (!fresh) {  // a stale factor's direction: refresh it at ξ and start again
-        double again = 0.0;
-        ok = evaluate(s->xi, &again) && refactor(true);
-        if (!ok) break;
-        fresh = true;
-        s->delta = s->residual;
-        s->SolveInPlace(s->delta);
-        alpha = 1.0;
-        continue;
-      }
-      if (++halvings > 12) break;  // no progress (rounding): keep ξ, unconverged
-      alpha *= 0.5;
-    }
-    if (!ok) break;
-    if (halvings > 12) {
-      double again = 0.0;
-      ok = evaluate(s->xi, &again);  // grad and stress back at ξ
-      break;
-    }
-    s->xi = s->trial;  // s->residual, grad and stress are the trial's
-    ++iterations;
-    refresh = trial_norm > 0.5 * norm;
-    fresh = false;
-    norm = trial_norm;
-  }
-  s->counters.solver_iterations += iterations;
-  if (!ok) {
+  if (!newton.Solve(inputs, extrapolate, &converged)) {
     s->xi.setConstant(std::numeric_limits<double>::quiet_NaN());  // rejected: rolled back
     s->Rebuild();
     return;
@@ -533,31 +542,34 @@ void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base)
   } else {
     ++s->counters.solver_unconverged;
   }
-  // The Prony variables advance with the accepted elastic stresses S^e = F⁻¹ P^e.
-  if (!data_.prony.empty()) {
-    const size_t terms = data_.prony.size();
-    double decay[fem::kMaxPronyTerms] = {}, weight[fem::kMaxPronyTerms] = {};
-    for (size_t k = 0; k < terms; ++k) {
-      double beta = 0.0;
-      fem::PronyFactors(data_.prony[k], inputs.dt, &decay[k], &beta);
-      weight[k] = data_.prony[k].gamma * beta;
-    }
-    const Eigen::Index m = data_.tets.cols();
-    for (Eigen::Index e = 0; e < m; ++e) {
-      const Matrix3d f = Matrix3d::Identity() + Eigen::Map<const Matrix3d>(s->grad.data() + 9 * e);
-      const Matrix3d now = f.inverse() * fem::FirstPiolaStress(data_.material, f);
-      Eigen::Map<Matrix3d> last(s->elastic_last.data() + 9 * e);
-      for (size_t k = 0; k < terms; ++k) {
-        Eigen::Map<Matrix3d> h(s->history.data() + 9 * (e * static_cast<Eigen::Index>(terms) +
-                                                        static_cast<Eigen::Index>(k)));
-        h = decay[k] * h + weight[k] * (now - last);
-      }
-      last = now;
-    }
-  }
+  if (!data_.prony.empty()) AdvanceProny(inputs.dt, s);
   if (!data_.correction_nodes.empty()) Correct(inputs, s);
   s->Rebuild();
   s->ApplyCorrection();
+}
+
+void NonlinearReducedModel::AdvanceProny(double dt, TissueState* base) const {
+  auto* s = static_cast<NonlinearState*>(base);
+  // The Prony variables advance with the accepted elastic stresses S^e = F⁻¹ P^e.
+  const size_t terms = data_.prony.size();
+  double decay[fem::kMaxPronyTerms] = {}, weight[fem::kMaxPronyTerms] = {};
+  for (size_t k = 0; k < terms; ++k) {
+    double beta = 0.0;
+    fem::PronyFactors(data_.prony[k], dt, &decay[k], &beta);
+    weight[k] = data_.prony[k].gamma * beta;
+  }
+  const Eigen::Index m = data_.tets.cols();
+  for (Eigen::Index e = 0; e < m; ++e) {
+    const Matrix3d f = Matrix3d::Identity() + Eigen::Map<const Matrix3d>(s->grad.data() + 9 * e);
+    const Matrix3d now = f.inverse() * fem::FirstPiolaStress(data_.material, f);
+    Eigen::Map<Matrix3d> last(s->elastic_last.data() + 9 * e);
+    for (size_t k = 0; k < terms; ++k) {
+      Eigen::Map<Matrix3d> h(s->history.data() + 9 * (e * static_cast<Eigen::Index>(terms) +
+                                                      static_cast<Eigen::Index>(k)));
+      h = decay[k] * h + weight[k] * (now - last);
+    }
+    last = now;
+  }
 }
 
 NonlinearReducedModel::Bracket NonlinearReducedModel::MagnitudeBracket(double magnitude) const {
@@ -684,13 +696,7 @@ Eigen::Matrix3d NonlinearReducedModel::LocalStiffness(const TissueState& state,
   s.SolveInPlace(s.local);
   Matrix3d compliance = rows * s.local;
   compliance = 0.5 * (compliance + compliance.transpose()).eval();
-  const Eigen::SelfAdjointEigenSolver<Matrix3d> eigen(compliance);
-  Eigen::Vector3d stiffness;
-  for (int k = 0; k < 3; ++k) {
-    const double c = eigen.eigenvalues()(k);
-    stiffness(k) = c * data_.max_local_stiffness > 1.0 ? 1.0 / c : data_.max_local_stiffness;
-  }
-  return eigen.eigenvectors() * stiffness.asDiagonal() * eigen.eigenvectors().transpose();
+  return CappedStiffness(compliance, data_.max_local_stiffness);
 }
 
 void NonlinearReducedModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
@@ -710,12 +716,7 @@ EnergyReport NonlinearReducedModel::Energy(const TissueState& state,
                                            const Eigen::Vector3d& gravity) const {
   EnergyReport report;
   report.elastic = ElasticEnergyAt(Coordinates(state));
-  for (Eigen::Index i = 0; i < data_.rest.cols(); ++i) {
-    const double m = data_.masses[static_cast<size_t>(i)];
-    report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
-    report.gravity -= m * gravity.dot(state.positions.col(i));
-    report.momentum += m * state.velocities.col(i);
-  }
+  AddKineticAndGravity(data_.masses, state, gravity, &report);
   return report;
 }
 

@@ -191,6 +191,10 @@ class NonlinearReducedModel final : public TissueModel {
 
  private:
   NonlinearReducedModel(NonlinearModelData data, const fem::TetElements& elements);
+  // Advance's Newton iteration on r(ξ) = 0 (nonlinear_model.cc), and the sampled elements'
+  // Prony variables after an accepted step of dt [s].
+  struct Newton;
+  void AdvanceProny(double dt, TissueState* state) const;
   // Stresses P of every sampled element at the state's gradient buffer (vec(F − I), 9 × m)
   // into p (9 × m), scaled by w V; false if an element is inverted (det F <= 0) or not finite.
   bool Stresses(const double* h, double g, const double* offset, double* p) const;
