@@ -1,5 +1,6 @@
-// EfgModel's cutting by the visibility criterion (efg_model.h, "Cutting"): the sweep pulled
-// back to the reference configuration, the points whose segments it crosses re-evaluated.
+// EfgModel's cutting by the visibility criterion (docs/models.md, "The EFG model in detail"):
+// the sweep pulled back to the reference configuration, the points whose segments it crosses
+// re-evaluated.
 #include <algorithm>
 #include <array>
 #include <cmath>

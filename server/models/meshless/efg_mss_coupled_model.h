@@ -1,44 +1,8 @@
 // Element-free Galerkin coupled to a mass-spring system (SPEC §4.6; seed 001's table 1 middle
-// variant, "耦合模型": its reference [14], Liu Xuemei 2013, EFG in the surgical region and a
-// mass-spring model (MSS) elsewhere; seed: 14.8 ms per step against 17.4 ms for pure EFG on a
-// 295-node liver, displacements within ±0.018 cm of pure EFG). Pure kernel: no I/O.
-//
-// One linear, monolithic model (one energy, one sparse system), so it is stable at 1 ms steps and
-// exact where it should be:
-//  - Region. The tetrahedra with a corner within region_radius of region_centre are meshless:
-//    integrated as the EFG (efg_model.h) does — MLS shape functions built on the nodes E of those
-//    tetrahedra only (same basis, weight, support rule: ρ_J >= min_support_edge_factor × the
-//    node's longest edge among them), the tetrahedra as background cells with the same Gauss rule,
-//    small-strain Hooke, K_E = Σ_gauss Bᵀ D B w |J|. The other tetrahedra are MSS.
-//  - MSS. Linear (small-displacement) axial springs on the MSS tetrahedra's unique edges: a
-//    spring (a, b) of rest direction e stores ½ k (eᵀ (u_b - u_a))² (the exact linearisation of
-//    a spring at its rest length: no transverse stiffness), k by the MassSpringModel's documented
-//    rule (Van Gelder 1998), k = E Σ_{MSS tets ∋ edge} V / |edge|². A spring network fixes ν at
-//    1/4 and is only approximately E: this, not the coupling, is what separates the coupled model
-//    from pure EFG.
-//  - Unknowns q: the EFG nodal parameters û_J of the region's nodes E (first, in increasing node
-//    order), then the physical displacements u_I of the MSS-only nodes. Node I's physical
-//    displacement is u_I = G_I q: G_I = Φ_I (MLS values φ_J(X_I), J in E) for I in E, the unit row
-//    of its own unknown otherwise. G is square (num_nodes × num_nodes) and invertible.
-//  - Interface nodes (corners of both kinds of tetrahedra) are in E: the springs touching them
-//    act through Φ_I, so force balance between the regions holds by construction (one energy,
-//    ½ qᵀ K q with K = K_E + Σ_springs k (G_b - G_a)ᵀ e eᵀ (G_b - G_a)) and displacement is
-//    continuous (one field at each node).
-//  - Masses: lumped, each tetrahedron's ρV/4 to its corners (both kinds; the MSS's rule too), so
-//    M̂ = Gᵀ diag(m) G. Damping: Rayleigh C = α M̂ + β K (EfgParameters). Loads at node points
-//    enter through Gᵀ; supports (fixed and prescribed nodes) are penalty springs ½ κ |u_I - ū_I|²
-//    at the node points, κ = penalty_factor × max diagonal of K, a fixed node held where it was
-//    when it became fixed — all as the EFG.
-//  - Dynamics: implicit Euler as the EFG's, A Δq̇ = dt (Gᵀ h - K (q + (β + dt) q̇)) with the
-//    node-point loads h_I = f_ext + m_I (g - α v_I) + Σ k (t - X_I) - s_I (u_I + dt v_I) (s_I the
-//    node's summed support and tool-spring stiffness, t their targets) and
-//    A = (1 + dt α) M̂ + (dt² + dt β) K + dt² Σ_I s_I G_Iᵀ G_I, one CHOLMOD factorisation (pattern
-//    analysed once, by MakeState), re-done only when dt or a node's summed spring stiffness
-//    changes. Attachments (tool springs) are inside A: a grasp whose target moves costs nothing,
-//    a change of its stiffness or node re-factorises (correct, allocates; a few ms on liver288
-//    with the default region, where the first step, both factors, takes 7–13 ms — no low-rank
-//    update as in EfgModel). A step that factorises nothing allocates nothing.
-// With the region covering every node this is EfgModel exactly; covering none, a linear MSS.
+// variant, its reference [14]): EFG on the tetrahedra near the surgical site, linear springs on
+// the other tetrahedra's edges, one energy and one sparse system over both. With the region
+// covering every node it is EfgModel; covering none, a linear mass-spring system. Derivations:
+// docs/models.md, "The coupled model in detail". Pure kernel: no I/O.
 #pragma once
 
 #include <Eigen/Core>

@@ -1,9 +1,7 @@
-// The tool springs' low-rank (Sherman–Morrison–Woodbury) update of a step's factor, shared by
-// EfgModel and EfgHybridModel: A = A0 + U S Uᵀ for the m attached nodes, U_j = R_jᵀ (a node's
-// three columns), S = diag(dt² k_j ⊗ I₃), solved as A⁻¹ b = x0 - Z W (I + W G W)⁻¹ W Uᵀ x0
-// with x0 = A0⁻¹ b, Z = A0⁻¹ U, G = Uᵀ Z and W = S^½ (docs/models.md, "Element-free Galerkin").
-// Z's columns and G's rows are cached per node in slots, the least recently attached evicted
-// first. Internal to the meshless models; allocation-free once sized. Pure: no I/O.
+// The tools' springs as a low-rank (Sherman–Morrison–Woodbury) update of a step's factor, shared
+// by EfgModel and EfgHybridModel: the distinct attached nodes, their cached columns Z = A0⁻¹ U in
+// least-recently-used slots, and the 3m × 3m correction (docs/models.md, "The EFG model in
+// detail"). Internal to the meshless models; allocation-free once sized. Pure: no I/O.
 #pragma once
 
 #include <Eigen/Core>
