@@ -1,20 +1,7 @@
-// Seed 001 §1.1 (Chen, Zhao & Zhu 2015, eq. 1–9): where the EFG field needs resolution. Per
-// background cell (the mesh's tetrahedra), from the strain-energy density's gradient over the
-// node density. Pure: no I/O.
-//
-//   DSE = ½ σ : ε                          (eq. 1: strain-energy density [J/m³])
-//   GSED = |∇DSE| = |(∂DSE/∂x, ∂DSE/∂y, ∂DSE/∂z)|   (eq. 2–4 [J/m⁴])
-//   DM = N_k / V_k                         (eq. 5: nodes of cell k over its volume [1/m³])
-//   r_d = GSED / DM                        (eq. 6–7: the cell's mesh intensity [J/m])
-//   R_max = max r_d, R_min = min r_d       (eq. 8–9)
-// The seed does not print eq. 1–9's bodies (only their names survive in the text); these are
-// the standard strain-gradient indicator it describes ("基于应变梯度的方法不需要求解二阶导数").
-// Here ε is the small strain of the MLS field at the cell's four degree-2 Gauss points (σ = λ tr ε
-// I
-// + 2 μ ε), ∇DSE the gradient of the linear function through the four values (exact for four
-// points), N_k = 4 (a tetrahedron's nodes). A cell whose normalised intensity
-// (r_d − R_min) / (R_max − R_min) is high is refined (its nodes join the surgical region); one
-// whose intensity is low is coarsened (its nodes may leave it).
+// Seed 001 §1.1's mesh intensity (Chen, Zhao & Zhu 2015, eq. 1–9): per background cell (the
+// mesh's tetrahedra), the strain-energy density's gradient over the node density, normalised
+// between the organ's extremes; the hybrid refines the region where it is high. Definitions:
+// docs/models.md, "The hybrid in detail". Pure: no I/O.
 #pragma once
 
 #include <Eigen/Core>
@@ -35,10 +22,9 @@ struct CellIntensity {
   double r_min = 0.0, r_max = 0.0;  // [J/m]
 };
 
-// The cells' shape-function gradients at their Gauss points, evaluated once (35 ms on liver288,
-// 0.6 s on liver4055; memory 28 bytes per Gauss point and covering node: ~4 MB on liver288,
-// ~40 MB on liver4055): an intensity is then sparse products, 1.7 ms on liver288 and 33 ms on
-// liver4055 (instead of ~25 ms and ~0.4 s of MLS evaluations).
+// The cells' shape-function gradients at their Gauss points, evaluated once (28 bytes per Gauss
+// point and covering node): an intensity is then sparse products instead of MLS evaluations
+// (the costs: docs/models.md).
 class CellIntensityEvaluator {
  public:
   // `tets`: 4 × num_tets indices into the shape functions' nodes. Throws std::invalid_argument

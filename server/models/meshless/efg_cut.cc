@@ -1,5 +1,6 @@
-// EfgModel's cutting by the visibility criterion (efg_model.h, "Cutting"): the sweep pulled
-// back to the reference configuration, the points whose segments it crosses re-evaluated.
+// EfgModel's cutting by the visibility criterion (docs/models.md, "The EFG model in detail"):
+// the sweep pulled back to the reference configuration, the points whose segments it crosses
+// re-evaluated.
 #include <algorithm>
 #include <array>
 #include <cmath>
@@ -10,6 +11,7 @@
 
 #include "server/models/meshless/efg_internal.h"
 #include "server/models/meshless/efg_model.h"
+#include "server/models/meshless/efg_system.h"
 
 namespace somasim::models::meshless {
 
@@ -42,7 +44,7 @@ SweptQuad EfgModel::PullBack(const SweptQuad& sweep, const mesh::Points& positio
     for (const auto& [d2, i] : best) {
       if (i < 0) continue;
       const double w = 1.0 / (std::sqrt(d2) + 1e-9);
-      u += w * (positions.col(i) - rest_.col(i));
+      u += w * (positions.col(i) - system_->rest.col(i));
       total += w;
     }
     return Vector3d(p - u / total);
@@ -52,10 +54,12 @@ SweptQuad EfgModel::PullBack(const SweptQuad& sweep, const mesh::Points& positio
 
 int64_t EfgModel::ApplyCut(const SweptQuad& sweep, EfgCutValues* cut) const {
   if (!sweep.AllFinite()) return 0;
+  const EfgSystem& system = *system_;
+  const mesh::Points& rest = system.rest;
   if (cut->phi_value.empty()) {
-    cut->phi_value = phi_value_;
-    cut->k_blocks = k_blocks_;
-    cut->m_blocks = m_blocks_;
+    cut->phi_value = system.row_value;
+    cut->k_blocks = system.k_blocks;
+    cut->m_blocks = system.m_blocks;
     cut->dropped.assign(size_t(num_gauss_), 0);
     cut->detached.assign(size_t(num_nodes()), 0);
   }
@@ -94,7 +98,7 @@ int64_t EfgModel::ApplyCut(const SweptQuad& sweep, EfgCutValues* cut) const {
     covering.clear();
     shape_->CoveringNodes(x, &covering);
     return std::any_of(covering.begin(), covering.end(),
-                       [&](int32_t j) { return crosses_fresh(rest_.col(j), x); });
+                       [&](int32_t j) { return crosses_fresh(rest.col(j), x); });
   };
 
   // Gauss points: old contribution out, new in (or the point dropped).
@@ -105,7 +109,7 @@ int64_t EfgModel::ApplyCut(const SweptQuad& sweep, EfgCutValues* cut) const {
     TrianglesNear(cut->triangles, 0, old_end, x, reach, &near);
     shape_->Evaluate(x, true, near, &before);  // evaluated like this before: cannot throw
     const bool changed = std::any_of(before.nodes.begin(), before.nodes.end(),
-                                     [&](int32_t j) { return crosses_fresh(rest_.col(j), x); });
+                                     [&](int32_t j) { return crosses_fresh(rest.col(j), x); });
     if (!changed) continue;
     near.insert(near.end(), fresh.begin(), fresh.end());
     const double w = gauss_w_[size_t(g)];
@@ -122,15 +126,16 @@ int64_t EfgModel::ApplyCut(const SweptQuad& sweep, EfgCutValues* cut) const {
   }
 
   // Node points: Φ's row and its share of M̂ = Φᵀ diag(m) Φ.
+  const std::vector<int32_t>& phi_start = system.row_start;
+  const std::vector<int32_t>& phi_node = system.row_col;
   std::vector<double> row;
   for (int32_t i = 0; i < num_nodes(); ++i) {
-    const Vector3d x = rest_.col(i);
+    const Vector3d x = rest.col(i);
     if (cut->detached[size_t(i)] != 0 || !near_fresh(x)) continue;
-    const int32_t begin = phi_start_[size_t(i)], end = phi_start_[size_t(i) + 1];
+    const int32_t begin = phi_start[size_t(i)], end = phi_start[size_t(i) + 1];
     bool changed = false;
     for (int32_t a = begin; a < end && !changed; ++a) {
-      changed =
-          cut->phi_value[size_t(a)] != 0.0 && crosses_fresh(rest_.col(phi_node_[size_t(a)]), x);
+      changed = cut->phi_value[size_t(a)] != 0.0 && crosses_fresh(rest.col(phi_node[size_t(a)]), x);
     }
     if (!changed) continue;
     row.assign(size_t(end - begin), 0.0);
@@ -141,21 +146,21 @@ int64_t EfgModel::ApplyCut(const SweptQuad& sweep, EfgCutValues* cut) const {
       shape_->Evaluate(x, false, near, &after);
       size_t k = 0;  // after.nodes ⊆ the row's pattern, both increasing
       for (int32_t a = begin; a < end && k < after.nodes.size(); ++a) {
-        if (phi_node_[size_t(a)] == after.nodes[k]) row[size_t(a - begin)] = after.values[k++];
+        if (phi_node[size_t(a)] == after.nodes[k]) row[size_t(a - begin)] = after.values[k++];
       }
     } catch (const std::invalid_argument&) {
       for (int32_t a = begin; a < end; ++a) {
-        if (phi_node_[size_t(a)] == i) row[size_t(a - begin)] = 1.0;
+        if (phi_node[size_t(a)] == i) row[size_t(a - begin)] = 1.0;
       }
       cut->detached[size_t(i)] = 1;
       ++cut->detached_rows;
     }
-    const double m = mass_[size_t(i)];
+    const double m = system.mass[size_t(i)];
     for (int32_t b = begin; b < end; ++b) {
       const double old_b = cut->phi_value[size_t(b)], new_b = row[size_t(b - begin)];
-      int64_t slot = block_start_[size_t(phi_node_[size_t(b)])];
+      int64_t slot = system.block_start[size_t(phi_node[size_t(b)])];
       for (int32_t a = b; a < end; ++a) {
-        while (block_row_[size_t(slot)] != phi_node_[size_t(a)]) ++slot;
+        while (system.block_row[size_t(slot)] != phi_node[size_t(a)]) ++slot;
         cut->m_blocks[size_t(slot)] +=
             m * (row[size_t(a - begin)] * new_b - cut->phi_value[size_t(a)] * old_b);
       }
@@ -184,19 +189,20 @@ int32_t EfgModel::Cut(const SweptQuad& sweep, TissueState* base) const {
   // The physical field stays; the parameters follow under the new Φ (one LU for both).
   const Eigen::Index n = num_nodes();
   mesh::Points field(3, 2 * n), params;
-  field.leftCols(n) = st->positions - rest_;
+  field.leftCols(n) = st->positions - system_->rest;
   field.rightCols(n) = st->velocities;
   Eigen::MatrixXd stacked(n, 6), solved;
   stacked.leftCols<3>() = field.leftCols(n).transpose();
   stacked.rightCols<3>() = field.rightCols(n).transpose();
-  if (SolvePhi(PhiMatrix(int32_t(n), phi_start_, phi_node_, st->cut->phi_value.data()), false,
-               stacked, &solved)) {
+  if (SolvePhi(
+          PhiMatrix(int32_t(n), system_->row_start, system_->row_col, st->cut->phi_value.data()),
+          false, stacked, &solved)) {
     st->params = solved.leftCols<3>().transpose();
     st->vparams = solved.rightCols<3>().transpose();
   } else {  // a singular cut Φ (cannot happen but for a degenerate cut): the field follows Φ
-    MultiplyPhi(ValuesOf(st->cut.get()), st->params.data(), st->u.data());
-    MultiplyPhi(ValuesOf(st->cut.get()), st->vparams.data(), st->velocities.data());
-    st->positions = rest_ + st->u;
+    system_->MultiplyRows(ValuesOf(st->cut.get()), st->params.data(), st->u.data());
+    system_->MultiplyRows(ValuesOf(st->cut.get()), st->vparams.data(), st->velocities.data());
+    st->positions = system_->rest + st->u;
   }
   st->good_params = st->params;
   st->good_vparams = st->vparams;

@@ -1,39 +1,37 @@
 #include "server/models/meshless/efg_hybrid_model.h"
 
-#include <Eigen/Cholesky>
 #include <algorithm>
 #include <cmath>
 #include <limits>
-#include <numeric>
 #include <stdexcept>
 #include <string>
-#include <utility>
 #include <vector>
 
+#include "common/checks/finite.h"
 #include "server/models/fem/sparse_cholesky.h"
 #include "server/models/meshless/adaptivity.h"
+#include "server/models/meshless/efg_hybrid_internal.h"
 #include "server/models/meshless/efg_shared.h"
-#include "server/models/meshless/small_cholesky.h"
+#include "server/models/meshless/efg_system.h"
+#include "server/models/particle_mesh.h"
 
 namespace somasim::models::meshless {
 namespace {
 
-using Eigen::Index;
-using Eigen::Matrix3d;
-using Eigen::MatrixXd;
-using Eigen::Vector3d;
-using Eigen::VectorXd;
-using RowMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+using hybrid_internal::HybridState;
+using hybrid_internal::Index;
+using hybrid_internal::Matrix3d;
+using hybrid_internal::MatrixXd;
+using hybrid_internal::NonZero;
+using hybrid_internal::Vector3d;
+using hybrid_internal::VectorXd;
 
 [[noreturn]] void Refuse(const std::string& what) {
   throw std::invalid_argument("efg_hybrid: " + what);
 }
 
-// The extension's shift without supports, K̃ = K + σ M̂ [1/s²] (a basis only).
-constexpr double kFreeShift = 1.0;
-
 void CheckParameters(const EfgHybridParameters& p) {
-  if (!(p.region_radius > 0.0) || !std::isfinite(p.region_radius)) {
+  if (!checks::FinitePositive(p.region_radius)) {
     Refuse("region_radius [m] must be a finite value > 0");
   }
   if (!(p.follow_fraction > 0.0 && p.follow_fraction <= 1.0)) {
@@ -54,92 +52,6 @@ void CheckParameters(const EfgHybridParameters& p) {
   }
 }
 
-// The hybrid's state: the surgical region's parameters q and velocities, the partition's dense
-// matrices, the static factor of K̃ and every buffer a step needs. Buffers whose size depends
-// on the region (k) are sized by each partition; the rest by MakeState.
-class HybridState final : public TissueState {
- public:
-  // --- the partition (sized by Partition) ---
-  bool partitioned = false;
-  Vector3d centre = Vector3d::Zero();
-  std::vector<int32_t> kept;         // the region's nodes, nearest the centre first (k)
-  std::vector<int32_t> kept_of;      // num_nodes: index into kept, -1 for far nodes
-  std::vector<uint8_t> touches_far;  // num_nodes: node's MLS row holds a far parameter
-  MatrixXd t;                        // T [-], 3N × 3k: û = T q
-  RowMatrix d;                       // D = Φ T [-], 3N × 3k, by rows: node I's rows 3I..3I+2
-  MatrixXd s_inv;                    // S⁻¹ = (Tᵀ K̃ T)⁻¹ [m/N], 3k × 3k
-  MatrixXd m_r, k_r, p_r;            // M_r [kg], K_r and P_r [N/m], 3k × 3k
-  MatrixXd g_r;                      // Dᵀ (m ⊗ e_c) [kg], 3k × 3
-  MatrixXd offset_g;                 // physical far response per unit gravity [m/(m/s²)], 3N × 3
-  MatrixXd param_offset_g;           // the same in parameters, 3N × 3
-  VectorXd q, vq, good_q, good_vq;   // [m], [m/s], 3k
-  VectorXd b, work;                  // 3k
-  MatrixXd a;                        // A, 3k × 3k
-  Eigen::LLT<MatrixXd> a_llt;
-  double cached_dt = 0.0;
-  bool a_valid = false;
-  // --- the low-rank slots (capacity c; Z sized by Partition) ---
-  MatrixXd z;                         // A⁻¹ U, 3k × 3c
-  MatrixXd gram;                      // Uᵀ Z, 3c × 3c
-  std::vector<int32_t> slot_node;     // c, -1 free
-  std::vector<int32_t> slot_of_node;  // num_nodes, -1 none
-  std::vector<int64_t> slot_stamp;    // c
-  int64_t stamp = 0;
-  MatrixXd small;                                        // 3c × 3c
-  VectorXd small_rhs;                                    // 3c
-  std::vector<int32_t> attached_nodes, attached_slot;    // c
-  std::vector<double> attached_stiffness, attached_sum;  // c, num_nodes
-  int32_t num_attached = 0;
-  // --- supports (sized by MakeState) ---
-  std::vector<double> support, cached_support;  // s_I [N/m], num_nodes
-  mesh::Points support_target;                  // Σ s (target - X) per node [N], 3 × num_nodes
-  mesh::Points anchor;                          // [m] where each fixed node is held
-  std::vector<uint8_t> fixed_now, fixed_prev;   // num_nodes
-  std::vector<int32_t> support_nodes;           // this step's supported nodes, distinct
-  std::vector<uint8_t> support_listed;          // num_nodes
-  bool has_supports = false;
-  // The shift σ of K̃ = K + P_s + σ M̂: 0 with supports, kFreeShift for a free body or when a cut
-  // has severed a piece without supports (K + P_s singular); statics are exact only for 0.
-  double shift = 0.0;
-  bool static_valid = false;  // static_factor holds K̃ for cached_support
-  fem::LowerCsc system;
-  std::vector<double> blocks;
-  std::unique_ptr<fem::SparseCholesky> static_factor;
-  // --- loads reaching far parameters ---
-  mesh::Points far_loads, cached_far_loads;        // [N], 3 × num_nodes
-  mesh::Points offset_l, param_offset_l;           // their far response [m], 3 × num_nodes
-  mesh::Points full_rhs, full_solution, full_phi;  // scratch, 3 × num_nodes
-  // --- outputs and caches ---
-  mesh::Points offsets;  // this step's physical particular displacement [m], 3 × num_nodes
-  Vector3d gravity = Vector3d::Zero();  // [m/s²] of the last step or static solve
-  MatrixXd local_work;                  // S⁻¹ D_Iᵀ, 3k × 3 (LocalStiffness)
-  std::vector<double> local_stiffness;  // 9 × num_nodes
-  std::vector<uint8_t> local_valid;     // num_nodes
-  int64_t partitions = 0, factorisations = 0, far_solves = 0, adaptations = 0;
-  // Adaptivity: nodes the intensity added to the region (num_nodes), steps since the last one.
-  std::vector<uint8_t> refined;
-  int32_t steps_since_adapt = 0;
-  // Cutting: the cut EFG values (nullptr before the first cut); a cut since the last step (the
-  // next step factorises K̃ and partitions again) and the field it carries over (parameters of
-  // the physical field under the cut Φ, 3 × num_nodes each) when `carry`.
-  std::unique_ptr<EfgCutValues> cut;
-  bool cut_pending = false, carry = false;
-  mesh::Points carried_params, carried_vparams;
-
- protected:
-  void SaveGood() override {
-    good_q = q;  // same size: no allocation
-    good_vq = vq;
-  }
-  void RestoreGood() override {
-    q = good_q;
-    vq = good_vq;
-  }
-};
-
-// The nonzero columns of the node loads: true when node I's force is not all zero.
-bool NonZero(const double* f) { return f[0] != 0.0 || f[1] != 0.0 || f[2] != 0.0; }
-
 }  // namespace
 
 EfgHybridModel::EfgHybridModel() = default;
@@ -151,7 +63,7 @@ std::unique_ptr<EfgHybridModel> EfgHybridModel::FromTetMesh(const mesh::TetMesh&
   std::unique_ptr<EfgHybridModel> model(new EfgHybridModel());
   model->efg_ = EfgModel::FromTetMesh(mesh, parameters.efg);
   model->parameters_ = parameters;
-  model->centroid_ = model->efg_->rest_.rowwise().mean();
+  model->centroid_ = model->efg_->system_->rest.rowwise().mean();
   model->tets_ = mesh.tetrahedra;
   if (parameters.adaptive) {
     model->intensity_ =
@@ -167,33 +79,25 @@ std::unique_ptr<TissueState> EfgHybridModel::MakeState() const {
   auto st = std::make_unique<HybridState>();
   const int32_t n = num_nodes();
   const auto nn = size_t(n);
-  const auto c = size_t(parameters_.efg.max_low_rank_nodes);
-  InitialiseState(efg_->rest_, st.get());
+  const int32_t c = parameters_.efg.max_low_rank_nodes;
+  const EfgSystem& system = *efg_->system_;
+  InitialiseState(system.rest, st.get());
   st->kept_of.assign(nn, -1);
   st->touches_far.assign(nn, 0);
-  st->slot_node.assign(c, -1);
-  st->slot_of_node.assign(nn, -1);
-  st->slot_stamp.assign(c, -1);
-  st->small.resize(Index(3 * c), Index(3 * c));
-  st->small_rhs.resize(Index(3 * c));
-  st->gram.setZero(Index(3 * c), Index(3 * c));
-  st->attached_nodes.assign(c, -1);
-  st->attached_slot.assign(c, -1);
-  st->attached_stiffness.assign(c, 0.0);
-  st->attached_sum.assign(nn, 0.0);
+  st->slots.Size(c, n, c);  // more distinct attached nodes than slots: the step is refused
   st->support.assign(nn, 0.0);
   st->cached_support.assign(nn, -1.0);  // never a stiffness: the first step factorises
   st->support_target = mesh::Points::Zero(3, n);
-  st->anchor = efg_->rest_;
+  st->anchor = system.rest;
   st->fixed_now.assign(nn, 0);
   st->fixed_prev.assign(nn, 0);
   st->support_nodes.reserve(nn);
   st->support_listed.assign(nn, 0);
   st->system.size = 3 * n;
-  st->system.col_start = efg_->csc_col_start_;
-  st->system.rows = efg_->csc_rows_;
-  st->system.values.assign(efg_->csc_rows_.size(), 0.0);
-  st->blocks.assign(efg_->k_blocks_.size(), 0.0);
+  st->system.col_start = system.csc_col_start;
+  st->system.rows = system.csc_rows;
+  st->system.values.assign(system.csc_rows.size(), 0.0);
+  st->blocks.assign(system.k_blocks.size(), 0.0);
   st->static_factor = std::make_unique<fem::SparseCholesky>();
   st->static_factor->Analyse(st->system);
   for (mesh::Points* p : {&st->far_loads, &st->cached_far_loads, &st->offset_l, &st->param_offset_l,
@@ -204,449 +108,6 @@ std::unique_ptr<TissueState> EfgHybridModel::MakeState() const {
   st->local_valid.assign(nn, 0);
   st->refined.assign(nn, 0);
   return st;
-}
-
-bool EfgHybridModel::FactoriseStatic(TissueState* base) const {
-  auto* st = static_cast<HybridState*>(base);
-  st->has_supports =
-      std::any_of(st->support.begin(), st->support.end(), [](double s) { return s > 0.0; });
-  const EfgModel::Values values = efg_->ValuesOf(st->cut.get());
-  st->shift = st->has_supports ? 0.0 : kFreeShift;
-  efg_->AssembleSystem(values, 1.0, st->shift, 1.0, st->support.data(), st->blocks.data(),
-                       st->system.values.data());
-  st->static_valid = st->static_factor->Factorise(st->system);
-  ++st->factorisations;
-  if (!st->static_valid && st->shift == 0.0 && st->cut != nullptr) {
-    // A cut severed a piece the supports do not hold: condense with the shifted K̃.
-    st->shift = kFreeShift;
-    efg_->AssembleSystem(values, 1.0, st->shift, 1.0, st->support.data(), st->blocks.data(),
-                         st->system.values.data());
-    st->static_valid = st->static_factor->Factorise(st->system);
-    ++st->factorisations;
-  }
-  std::copy(st->support.begin(), st->support.end(), st->cached_support.begin());
-  return st->static_valid;
-}
-
-// The particular far response of node-point loads L (3N): û = K̃⁻¹ Φᵀ L, q_p = û_k; the
-// parameters' offset û - T q_p and the physical one Φ û - D q_p.
-void EfgHybridModel::ParticularResponse(const double* node_loads, double* offsets,
-                                        TissueState* base) const {
-  auto* st = static_cast<HybridState*>(base);
-  const EfgModel::Values values = efg_->ValuesOf(st->cut.get());
-  efg_->MultiplyPhiTransposed(values, node_loads, st->full_rhs.data());
-  st->static_factor->Solve(st->full_rhs.data(), st->full_solution.data());
-  const auto k3 = Index(3 * st->kept.size());
-  for (size_t a = 0; a < st->kept.size(); ++a) {
-    for (int c = 0; c < 3; ++c) {
-      st->work[Index(3 * a) + c] = st->full_solution.data()[3 * size_t(st->kept[a]) + size_t(c)];
-    }
-  }
-  efg_->MultiplyPhi(values, st->full_solution.data(), st->full_phi.data());
-  const Index rows = 3 * Index(num_nodes());
-  const auto q_p = st->work.head(k3);
-  for (Index r = 0; r < rows; ++r) {
-    offsets[r] = st->full_phi.data()[r] - st->d.row(r).dot(q_p);
-    st->full_solution.data()[r] -= st->t.row(r).dot(q_p);  // parameters' offset, kept below
-  }
-}
-
-void EfgHybridModel::Partition(const Vector3d& centre, TissueState* base) const {
-  auto* st = static_cast<HybridState*>(base);
-  const int32_t n = num_nodes();
-  const mesh::Points& rest = efg_->rest_;
-  // The region: nodes within the radius, nearest first, at most max_region_nodes, at least one.
-  std::vector<std::pair<double, int32_t>> by_distance;
-  by_distance.reserve(size_t(n));
-  for (int32_t i = 0; i < n; ++i) by_distance.emplace_back((rest.col(i) - centre).norm(), i);
-  std::sort(by_distance.begin(), by_distance.end());
-  st->kept.clear();
-  for (const auto& [distance, node] : by_distance) {
-    if (st->kept.size() >= size_t(parameters_.max_region_nodes)) break;
-    if (st->kept.empty() || distance <= parameters_.region_radius ||
-        st->refined[size_t(node)] != 0) {
-      st->kept.push_back(node);
-    }
-  }
-  std::fill(st->kept_of.begin(), st->kept_of.end(), -1);
-  for (size_t a = 0; a < st->kept.size(); ++a) st->kept_of[size_t(st->kept[a])] = int32_t(a);
-  const auto k = Index(st->kept.size());
-  const Index k3 = 3 * k, rows = 3 * Index(n);
-
-  // Y = K̃⁻¹ [I_k; 0] (3k solves), S⁻¹ = Y_kk, S = Y_kk⁻¹, T = Y S.
-  MatrixXd y = MatrixXd::Zero(rows, k3);
-  for (Index j = 0; j < k3; ++j) y(Index(3 * st->kept[size_t(j / 3)]) + j % 3, j) = 1.0;
-  st->static_factor->SolveMany(y.data(), y.data(), int32_t(k3));
-  st->s_inv.resize(k3, k3);
-  for (Index i = 0; i < k3; ++i) {
-    st->s_inv.row(i) = y.row(Index(3 * st->kept[size_t(i / 3)]) + i % 3);
-  }
-  st->s_inv = (0.5 * (st->s_inv + st->s_inv.transpose())).eval();
-  const MatrixXd s = st->s_inv.llt().solve(MatrixXd::Identity(k3, k3));
-  const MatrixXd s_sym = 0.5 * (s + s.transpose());
-  st->t.noalias() = y * s_sym;
-  // D = Φ T by node rows.
-  const double* phi_value = efg_->ValuesOf(st->cut.get()).phi;
-  st->d.setZero(rows, k3);
-  for (int32_t i = 0; i < n; ++i) {
-    uint8_t far = 0;
-    for (int32_t a = efg_->phi_start_[size_t(i)]; a < efg_->phi_start_[size_t(i) + 1]; ++a) {
-      const int32_t j = efg_->phi_node_[size_t(a)];
-      far |= uint8_t(st->kept_of[size_t(j)] < 0);
-      st->d.middleRows<3>(3 * Index(i)) += phi_value[size_t(a)] * st->t.middleRows<3>(3 * Index(j));
-    }
-    st->touches_far[size_t(i)] = far;
-  }
-  // M_r = Dᵀ diag(m) D, G_r = Dᵀ (m ⊗ e_c), P_r = Σ_s s_I D_Iᵀ D_I.
-  RowMatrix weighted = st->d;
-  st->g_r.setZero(k3, 3);
-  for (int32_t i = 0; i < n; ++i) {
-    const double m = efg_->mass_[size_t(i)];
-    for (int c = 0; c < 3; ++c) st->g_r.col(c) += m * st->d.row(3 * Index(i) + c).transpose();
-    weighted.middleRows<3>(3 * Index(i)) *= std::sqrt(m);
-  }
-  st->m_r.noalias() = weighted.transpose() * weighted;
-  st->p_r.setZero(k3, k3);
-  for (int32_t i = 0; i < n; ++i) {
-    const double support = st->support[size_t(i)];
-    if (support <= 0.0) continue;
-    const auto di = st->d.middleRows<3>(3 * Index(i));
-    st->p_r.noalias() += support * (di.transpose() * di);
-  }
-  st->k_r = s_sym - st->p_r;
-  if (st->shift != 0.0) st->k_r -= st->shift * st->m_r;
-  // Per-step and low-rank buffers.
-  st->q.setZero(k3);
-  st->vq.setZero(k3);
-  st->good_q.setZero(k3);
-  st->good_vq.setZero(k3);
-  st->b.setZero(k3);
-  st->work.setZero(std::max<Index>(k3, 3));
-  st->a.setZero(k3, k3);
-  st->local_work.setZero(k3, 3);
-  st->z.setZero(k3, 3 * Index(st->slot_node.size()));
-  st->a_valid = false;
-  for (int32_t& node : st->slot_node) {
-    if (node >= 0) st->slot_of_node[size_t(node)] = -1;
-    node = -1;
-  }
-  std::fill(st->slot_stamp.begin(), st->slot_stamp.end(), int64_t{-1});
-  std::fill(st->local_valid.begin(), st->local_valid.end(), uint8_t{0});
-  st->centre = centre;
-  st->partitioned = true;
-  ++st->partitions;
-  // Gravity's particular far response, per unit component (none for a free body).
-  st->offset_g.setZero(rows, 3);
-  st->param_offset_g.setZero(rows, 3);
-  if (st->has_supports && st->shift == 0.0) {
-    mesh::Points unit_gravity(3, n);
-    for (int c = 0; c < 3; ++c) {
-      unit_gravity.setZero();
-      for (int32_t i = 0; i < n; ++i) unit_gravity(c, i) = efg_->mass_[size_t(i)];
-      ParticularResponse(unit_gravity.data(), st->offset_g.col(c).data(), st);
-      st->param_offset_g.col(c) = Eigen::Map<const VectorXd>(st->full_solution.data(), rows);
-    }
-  }
-  // Loads reaching far parameters are recomputed for this partition at the next step.
-  st->cached_far_loads.setConstant(std::numeric_limits<double>::quiet_NaN());
-  st->offset_l.setZero();
-  st->param_offset_l.setZero();
-}
-
-void EfgHybridModel::FillSlot(int32_t slot, int32_t node, TissueState* base) const {
-  auto* st = static_cast<HybridState*>(base);
-  const auto s = Index(slot);
-  const auto di = st->d.middleRows<3>(3 * Index(node));
-  for (int c = 0; c < 3; ++c) {
-    auto column = st->z.col(3 * s + c);
-    column = di.row(c).transpose();
-    st->a_llt.matrixL().solveInPlace(column);
-    st->a_llt.matrixU().solveInPlace(column);
-  }
-  st->slot_node[size_t(slot)] = node;
-  st->slot_of_node[size_t(node)] = slot;
-  for (size_t t = 0; t < st->slot_node.size(); ++t) {
-    const int32_t other = st->slot_node[t];
-    if (other < 0) continue;
-    const auto tt = Index(t);
-    Matrix3d block;
-    for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 3; ++c) {
-        block(r, c) = st->d.row(3 * Index(other) + r).dot(st->z.col(3 * s + c));
-      }
-    }
-    if (tt == s) block = (0.5 * (block + block.transpose())).eval();
-    st->gram.block<3, 3>(3 * tt, 3 * s) = block;
-    st->gram.block<3, 3>(3 * s, 3 * tt) = block.transpose();
-  }
-}
-
-bool EfgHybridModel::CorrectForAttachments(double dt, TissueState* base) const {
-  auto* st = static_cast<HybridState*>(base);
-  const auto m = Index(st->num_attached);
-  const Index r = 3 * m;
-  for (Index i = 0; i < m; ++i) {
-    const int32_t node = st->attached_nodes[size_t(i)];
-    const double wi = dt * std::sqrt(st->attached_stiffness[size_t(i)]);
-    for (int c = 0; c < 3; ++c) {
-      st->small_rhs[3 * i + c] = wi * st->d.row(3 * Index(node) + c).dot(st->b);
-    }
-    const auto si = Index(st->attached_slot[size_t(i)]);
-    for (Index j = 0; j <= i; ++j) {
-      const double wj = dt * std::sqrt(st->attached_stiffness[size_t(j)]);
-      const auto sj = Index(st->attached_slot[size_t(j)]);
-      st->small.block<3, 3>(3 * i, 3 * j) = (wi * wj) * st->gram.block<3, 3>(3 * si, 3 * sj);
-    }
-    st->small.block<3, 3>(3 * i, 3 * i).diagonal().array() += 1.0;
-  }
-  const auto ld = static_cast<int>(st->small.rows());
-  if (!CholeskyInPlace(st->small.data(), static_cast<int>(r), ld)) return false;
-  CholeskySolveInPlace(st->small.data(), static_cast<int>(r), ld, st->small_rhs.data());
-  for (Index j = 0; j < m; ++j) {
-    const double wj = dt * std::sqrt(st->attached_stiffness[size_t(j)]);
-    const auto sj = Index(st->attached_slot[size_t(j)]);
-    const Vector3d y = wj * st->small_rhs.segment<3>(3 * j);
-    st->b.noalias() -= st->z.middleCols<3>(3 * sj) * y;
-  }
-  return true;
-}
-
-void EfgHybridModel::Advance(const StepInputs& inputs, TissueState* base) const {
-  auto* st = static_cast<HybridState*>(base);
-  const int32_t n = num_nodes();
-  const mesh::Points& rest = efg_->rest_;
-  const double dt = inputs.dt;
-  const double alpha = efg_->rayleigh_mass_, beta = efg_->rayleigh_stiffness_;
-  const double penalty = efg_->penalty_;
-  const auto fail = [st] {
-    st->positions.setConstant(std::numeric_limits<double>::quiet_NaN());  // marks it diverged
-  };
-
-  // 1. Supports (penalty springs and their targets) and the distinct attached nodes.
-  for (const int32_t node : st->support_nodes) {
-    st->support[size_t(node)] = 0.0;
-    st->support_target.col(node).setZero();
-    st->support_listed[size_t(node)] = 0;
-  }
-  st->support_nodes.clear();  // capacity num_nodes: no allocation
-  const auto add_support = [st, penalty, &rest](int32_t node, const Vector3d& target) {
-    st->support[size_t(node)] += penalty;
-    st->support_target.col(node) += penalty * (target - rest.col(node));
-    if (st->support_listed[size_t(node)] == 0) {
-      st->support_listed[size_t(node)] = 1;
-      st->support_nodes.push_back(node);
-    }
-  };
-  ForEachSupport(inputs, st, add_support);
-  for (const Attachment& grasp : inputs.attachments) {
-    st->attached_sum[size_t(grasp.node)] += grasp.stiffness;
-  }
-  st->num_attached = 0;
-  bool too_many = false;
-  for (const Attachment& grasp : inputs.attachments) {  // in order; each node once
-    const auto i = size_t(grasp.node);
-    const double k = st->attached_sum[i];
-    if (k > 0.0) {
-      if (size_t(st->num_attached) < st->attached_nodes.size()) {
-        st->attached_nodes[size_t(st->num_attached)] = grasp.node;
-        st->attached_stiffness[size_t(st->num_attached)] = k;
-        ++st->num_attached;
-      } else {
-        too_many = true;
-      }
-    }
-    st->attached_sum[i] = 0.0;
-  }
-  if (too_many) {  // more distinct grasped nodes than slots: refused as a diverged step
-    fail();
-    return;
-  }
-
-  // 2. The static factor of K̃ (when the supports change), then the region.
-  bool need_partition = !st->partitioned;
-  if (st->cut_pending ||
-      !std::equal(st->support.begin(), st->support.end(), st->cached_support.begin())) {
-    st->cut_pending = false;
-    if (!FactoriseStatic(st)) {
-      fail();
-      return;
-    }
-    need_partition = true;
-  }
-  int32_t tool = -1;
-  if (st->num_attached > 0) {
-    tool = st->attached_nodes[0];
-  } else if (inputs.external_forces != nullptr) {
-    double largest = 0.0;
-    for (int32_t i = 0; i < n; ++i) {
-      const double f = inputs.external_forces->col(i).squaredNorm();
-      if (f > largest) {
-        largest = f;
-        tool = i;
-      }
-    }
-  }
-  Vector3d centre = st->centre;
-  if (parameters_.adaptive && st->partitioned &&
-      ++st->steps_since_adapt >= parameters_.adapt_interval) {
-    st->steps_since_adapt = 0;
-    need_partition = Adapt(st) || need_partition;
-  }
-  if (!st->partitioned) {
-    if (parameters_.region_centre.allFinite()) {
-      centre = parameters_.region_centre;
-    } else if (tool >= 0) {
-      centre = rest.col(tool);
-    } else {
-      Index nearest = 0;
-      (rest.colwise() - centroid_).colwise().squaredNorm().minCoeff(&nearest);
-      centre = rest.col(nearest);
-    }
-  } else if (parameters_.follow_tool && tool >= 0 &&
-             (rest.col(tool) - st->centre).norm() >
-                 parameters_.follow_fraction * parameters_.region_radius) {
-    centre = rest.col(tool);
-    need_partition = true;
-    if (parameters_.adaptive) Adapt(st);  // the refinement follows the tool too
-  }
-  if (need_partition) {
-    // The field carries over by its parameters: the new q are the old û at the new region.
-    mesh::Points params, vparams;
-    if (st->carry) {  // a cut's: the physical field under the cut Φ
-      params = st->carried_params;
-      vparams = st->carried_vparams;
-      st->carry = false;
-    } else if (st->partitioned) {
-      params = NodalParameters(*st);
-      const VectorXd v = st->t * st->vq;
-      vparams = Eigen::Map<const mesh::Points>(v.data(), 3, n);
-    }
-    Partition(centre, st);
-    if (params.size() > 0) {
-      for (size_t a = 0; a < st->kept.size(); ++a) {
-        st->q.segment<3>(3 * Index(a)) = params.col(st->kept[a]);
-        st->vq.segment<3>(3 * Index(a)) = vparams.col(st->kept[a]);
-      }
-    }
-    st->good_q = st->q;
-    st->good_vq = st->vq;
-  }
-  const auto k3 = Index(3 * st->kept.size());
-
-  // 3. A's factor (per dt and partition) and the attached nodes' slots.
-  if (!st->a_valid || dt != st->cached_dt) {
-    st->a = (1.0 + dt * alpha) * st->m_r + (dt * dt + dt * beta) * st->k_r + dt * dt * st->p_r;
-    st->a_llt.compute(st->a);
-    ++st->factorisations;
-    st->a_valid = st->a_llt.info() == Eigen::Success;
-    st->cached_dt = dt;
-    for (int32_t& node : st->slot_node) {
-      if (node >= 0) st->slot_of_node[size_t(node)] = -1;
-      node = -1;
-    }
-    std::fill(st->slot_stamp.begin(), st->slot_stamp.end(), int64_t{-1});
-    if (!st->a_valid) {
-      fail();
-      return;
-    }
-  }
-  ++st->stamp;
-  const auto m = size_t(st->num_attached);
-  for (size_t j = 0; j < m; ++j) {
-    const int32_t slot = st->slot_of_node[size_t(st->attached_nodes[j])];
-    st->attached_slot[j] = slot;
-    if (slot >= 0) st->slot_stamp[size_t(slot)] = st->stamp;
-  }
-  for (size_t j = 0; j < m; ++j) {
-    if (st->attached_slot[j] >= 0) continue;
-    const auto oldest = std::min_element(st->slot_stamp.begin(), st->slot_stamp.end());
-    const auto slot = int32_t(oldest - st->slot_stamp.begin());
-    if (st->slot_node[size_t(slot)] >= 0)
-      st->slot_of_node[size_t(st->slot_node[size_t(slot)])] = -1;
-    FillSlot(slot, st->attached_nodes[j], st);
-    st->slot_stamp[size_t(slot)] = st->stamp;
-    st->attached_slot[j] = slot;
-  }
-
-  // 4. Loads reaching far parameters (external forces and support targets at nodes whose MLS
-  // row holds a far parameter): their particular response when they change.
-  const mesh::Points* external = inputs.external_forces;
-  st->far_loads.setZero();
-  bool any_far = false;
-  for (int32_t i = 0; i < n; ++i) {
-    if (st->touches_far[size_t(i)] == 0) continue;
-    Vector3d f = st->support_target.col(i);
-    if (external != nullptr) f += external->col(i);
-    if (f.isZero(0.0)) continue;
-    st->far_loads.col(i) = f;
-    any_far = true;
-  }
-  if (st->far_loads != st->cached_far_loads) {  // NaN after a partition: always different
-    if (any_far && st->has_supports && st->shift == 0.0) {
-      ParticularResponse(st->far_loads.data(), st->offset_l.data(), st);
-      std::copy(st->full_solution.data(), st->full_solution.data() + 3 * size_t(n),
-                st->param_offset_l.data());
-      ++st->far_solves;
-    } else {
-      st->offset_l.setZero();
-      st->param_offset_l.setZero();
-    }
-    st->cached_far_loads = st->far_loads;
-  }
-  st->gravity = inputs.gravity;
-  st->offsets = st->offset_l;
-  Eigen::Map<VectorXd>(st->offsets.data(), 3 * Index(n)).noalias() += st->offset_g * inputs.gravity;
-
-  // 5. b = dt (Dᵀ h - α M_r v - K_r (q + (β + dt) v) - P_r (q + dt v)).
-  auto b = st->b.head(k3);
-  b.noalias() = st->g_r * inputs.gravity;
-  if (external != nullptr) {
-    for (int32_t i = 0; i < n; ++i) {
-      const double* f = external->col(i).data();
-      if (NonZero(f))
-        b.noalias() += st->d.middleRows<3>(3 * Index(i)).transpose() * external->col(i);
-    }
-  }
-  for (const int32_t node : st->support_nodes) {
-    if (NonZero(st->support_target.col(node).data())) {
-      b.noalias() +=
-          st->d.middleRows<3>(3 * Index(node)).transpose() * st->support_target.col(node);
-    }
-  }
-  for (const Attachment& grasp : inputs.attachments) {
-    const auto di = st->d.middleRows<3>(3 * Index(grasp.node));
-    const Vector3d u = di * st->q + st->offsets.col(grasp.node);
-    const Vector3d v = di * st->vq;
-    const Vector3d f = grasp.stiffness * (grasp.target - rest.col(grasp.node) - u - dt * v);
-    b.noalias() += di.transpose() * f;
-  }
-  b.noalias() -= alpha * (st->m_r * st->vq);
-  st->work.head(k3) = st->q + (beta + dt) * st->vq;
-  b.noalias() -= st->k_r * st->work.head(k3);
-  st->work.head(k3) = st->q + dt * st->vq;
-  b.noalias() -= st->p_r * st->work.head(k3);
-  b *= dt;
-
-  // 6. Solve, correct for the attachments, update q, then the positions and velocities.
-  st->a_llt.matrixL().solveInPlace(b);
-  st->a_llt.matrixU().solveInPlace(b);
-  if (m > 0 && !CorrectForAttachments(dt, st)) {
-    fail();
-    return;
-  }
-  ++st->counters.solver_iterations;
-  st->vq += b;
-  st->q += dt * st->vq;
-  const Index rows = 3 * Index(n);
-  double* x = st->positions.data();
-  double* v = st->velocities.data();
-  const double* x0 = rest.data();
-  const double* o = st->offsets.data();
-  for (Index r = 0; r < rows; ++r) {
-    const auto row = st->d.row(r);
-    x[r] = x0[r] + o[r] + row.dot(st->q);
-    v[r] = row.dot(st->vq);
-  }
 }
 
 Eigen::Matrix3d EfgHybridModel::LocalStiffness(const TissueState& base, int32_t node) const {
@@ -694,7 +155,7 @@ int32_t EfgHybridModel::Cut(const SweptQuad& sweep, TissueState* base) const {
   if (hidden == 0) return 0;
   // The next step factorises the cut K̃ and partitions again; the physical field carries over.
   if (st->partitioned) {
-    const mesh::Points displacements = st->positions - efg_->rest_;
+    const mesh::Points displacements = st->positions - efg_->system_->rest;
     st->carry =
         efg_->ParametersOfDisplacements(displacements, &st->carried_params, st->cut.get()) &&
         efg_->ParametersOfDisplacements(st->velocities, &st->carried_vparams, st->cut.get());
@@ -707,19 +168,14 @@ EnergyReport EfgHybridModel::Energy(const TissueState& state, const Vector3d& gr
   EnergyReport report;
   report.elastic = efg_->ElasticEnergyOfParameters(
       NodalParameters(state), static_cast<const HybridState&>(state).cut.get());
-  for (Index i = 0; i < state.positions.cols(); ++i) {
-    const double m = efg_->mass_[size_t(i)];
-    report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
-    report.gravity -= m * gravity.dot(state.positions.col(i));
-    report.momentum += m * state.velocities.col(i);
-  }
+  AddKineticAndGravity(efg_->system_->mass, state, gravity, &report);
   return report;
 }
 
 void EfgHybridModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base) const {
   auto* st = static_cast<HybridState*>(base);
   const int32_t n = num_nodes();
-  const mesh::Points& rest = efg_->rest_;
+  const mesh::Points& rest = efg_->system_->rest;
   if (loads.parameter_forces != nullptr) {
     Refuse("SolveStatic: parameter_forces (distributed loads) are not supported by the hybrid");
   }
@@ -727,13 +183,7 @@ void EfgHybridModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base)
   // Supports: fixed at rest, prescribed at their positions.
   std::fill(st->support.begin(), st->support.end(), 0.0);
   mesh::Points h = mesh::Points::Zero(3, n);
-  const double penalty = efg_->penalty_;
-  for (const int32_t node : loads.fixed_nodes) st->support[size_t(node)] += penalty;
-  for (size_t j = 0; j < loads.prescribed_nodes.size(); ++j) {
-    const int32_t node = loads.prescribed_nodes[j];
-    st->support[size_t(node)] += penalty;
-    h.col(node) += penalty * (loads.prescribed_positions->col(Index(j)) - rest.col(node));
-  }
+  AddStaticSupports(loads, rest, efg_->system_->penalty, &st->support, &h);
   if (loads.external_forces != nullptr) h += *loads.external_forces;
   if (!FactoriseStatic(st)) {
     throw std::runtime_error(
@@ -787,38 +237,6 @@ void EfgHybridModel::SolveStatic(const EfgStaticLoads& loads, TissueState* base)
   st->velocities.setZero();
   st->good_q = st->q;
   st->good_vq = st->vq;
-}
-
-bool EfgHybridModel::Adapt(TissueState* base) const {
-  auto* st = static_cast<HybridState*>(base);
-  ++st->adaptations;
-  const CellIntensity cells = intensity_->Compute(NodalParameters(*st), efg_->lambda_, efg_->mu_);
-  // Refine: cells at or above refine_threshold; keep: nodes already refined whose cells stay
-  // at or above coarsen_threshold.
-  std::vector<uint8_t> refined(st->refined.size(), 0);
-  for (Eigen::Index t = 0; t < tets_.cols(); ++t) {
-    const double eta = cells.normalised[size_t(t)];
-    for (int a = 0; a < 4; ++a) {
-      const auto node = size_t(tets_(a, t));
-      if (eta >= parameters_.refine_threshold ||
-          (eta >= parameters_.coarsen_threshold && st->refined[node] != 0)) {
-        refined[node] = 1;
-      }
-    }
-  }
-  // The region changes when a node joins (refined, not yet kept) or one that joined by
-  // refinement outside the ball leaves.
-  const bool room = st->kept.size() < size_t(parameters_.max_region_nodes);
-  bool changed = false;
-  for (size_t i = 0; i < refined.size() && !changed; ++i) {
-    const bool kept = st->kept_of[i] >= 0;
-    if (!room && refined[i] != 0 && !kept) continue;  // full: no node can join
-    const bool in_ball =
-        (efg_->rest_.col(Eigen::Index(i)) - st->centre).norm() <= parameters_.region_radius;
-    changed = (refined[i] != 0 && !kept) || (kept && !in_ball && refined[i] == 0);
-  }
-  st->refined = std::move(refined);
-  return changed;
 }
 
 int64_t EfgHybridModel::Adaptations(const TissueState& state) const {

@@ -1,57 +1,7 @@
-// Seed 001's hybrid liver (SPEC §4.6, issue 13): element-free Galerkin where the surgeon works, a
-// cheap representation elsewhere, and a transition that balances force and displacement between
-// them. Pure kernel: no I/O.
-//
-// The seed (Chen, Zhao & Zhu 2015, §1.3) couples an EFG surgical region to a generalised surface
-// mesh through transition nodes that "satisfy zero resultant force and equal displacement", with
-// the transition nodes' displacement "a function of the two regions' approximations". We build
-// that transition exactly (static condensation; Guyan 1965), which is what lets the hybrid match
-// pure EFG to far better than the seed's ±0.01 cm:
-//
-//  - The surgical region: the nodes within region_radius of a centre (kept nodes k, at most
-//    max_region_nodes, nearest first). Their EFG nodal parameters q = û_k (3k) are the hybrid's
-//    unknowns.
-//  - The non-surgical region F (every other node): its parameters follow the kept ones by the
-//    static extension û_F = E q, E = -K̃_FF⁻¹ K̃_Fk, with K̃ = K + P_s the EFG stiffness with the
-//    supports' penalty springs (efg_model.h). So û = T q with T = [I; E] (3N × 3k): the far
-//    region carries no unknowns of its own — it is in force balance for every q (K̃_F· T q = 0:
-//    "合力为0") and its displacement is continuous with the surgical region's ("位移相等"),
-//    because both are one MLS field, u(x) = Σ_J φ_J(x) û_J: the displacement gradient does not
-//    jump across the transition.
-//  - Matrices: T is computed from the full static factor as T = Y S, Y = K̃⁻¹ [I_k; 0] (3k
-//    solves), S = (Y_kk)⁻¹ = T ᵀ K̃ T (the Schur complement of F, dense 3k × 3k). Node I's
-//    physical displacement is D_I q with D = Φ T (3N × 3k, dense). Reduced mass M_r = Dᵀ diag(m)
-//    D (kinetic energy ½ Σ m_I |v_I|², as the EFG), supports P_r = Σ_s s_I D_Iᵀ D_I, elastic
-//    K_r = S - P_r.
-//  - Statics are exact: for loads whose Φᵀ image touches only kept parameters (a tool in the
-//    surgical region), q = S⁻¹ Dᵀ f gives û = T q = K̃⁻¹ Φᵀ f, pure EFG's solution. Loads that
-//    reach far parameters (gravity; external forces and support targets at nodes whose MLS
-//    support crosses into F) add their particular far response û_p = K̃⁻¹ f̂ - T (K̃⁻¹ f̂)_k to the
-//    positions, one full solve when they change (gravity's three at partition): statics stay
-//    exact for every load. Tool springs (attachments) at far nodes act through T only
-//    (follow_tool moves the region to them).
-//  - Dynamics: implicit Euler on q with the EFG's Rayleigh damping, as the EFG steps û:
-//      A Δv = dt (Dᵀ h - α M_r v - K_r (q + (β + dt) v) - P_r (q + dt v)),
-//      A = (1 + dt α) M_r + (dt² + dt β) K_r + dt² P_r   (dense 3k × 3k, Cholesky once per dt and
-//      partition), h the node-point loads (external, gravity, support targets, tool springs).
-//    The far region is quasi-static (its inertia enters through M_r, Guyan's mass): it follows
-//    the surgical region without lagging — the seed's non-surgical region is there to be cheap,
-//    not to wobble. Tool springs enter by a low-rank (Woodbury) update of A's factor, as in the
-//    EFG, with U_I = D_Iᵀ and the columns A⁻¹ U_I cached per attached node (up to
-//    efg.max_low_rank_nodes distinct nodes; a step with more is rejected as diverged).
-//  - The region follows the tool (follow_tool): when the first attached node, or else the node
-//    with the largest external force, lies farther than follow_fraction × region_radius from
-//    the centre, the region is rebuilt around it (a partition: 3k solves with the static factor
-//    and dense products; allocates; ~30 ms on liver288 — seconds on liver4055, where a scene
-//    fixes the centre instead). The state carries over by û: the new q are the old field's
-//    parameters at the new kept nodes.
-// Cost per step: dense products with the 3k × 3k matrices and one pass over D (3N × 3k) for the
-// positions and velocities; the EFG's per-step cost is a sparse solve with the whole organ's
-// factor. A step that partitions or factorises nothing allocates nothing.
-//
-// Without supports (a free body) K̃ would be singular: the extension then uses K̃ = K + σ M̂ with
-// σ = 1 /s² (a basis only; the dynamics use the true K_r = Tᵀ K T), there are no static particular
-// responses and LocalStiffness is zero.
+// Seed 001's hybrid liver (SPEC §4.6, issue 13; Chen, Zhao & Zhu 2015, §1.3): element-free
+// Galerkin where the surgeon works, the rest of the organ condensed exactly onto it (Guyan), so
+// that force and displacement balance across the transition; the region follows the tool and
+// adapts to the field. Derivations: docs/models.md, "The hybrid in detail". Pure kernel: no I/O.
 #pragma once
 
 #include <Eigen/Core>
@@ -81,9 +31,9 @@ struct EfgHybridParameters {
   // intensity is computed from the field; the nodes of cells whose normalised intensity is at
   // least refine_threshold join the region, and nodes that joined that way leave it when their
   // cells fall below coarsen_threshold (the ball around the centre always stays). A change of
-  // the region rebuilds it (a partition). Off by default: an adaptation costs 1.7 ms on liver288
-  // (33 ms on liver4055; the cells' shape-function gradients are evaluated once, at
-  // construction) and a partition when the region changes.
+  // the region rebuilds it (a partition). Off by default: an adaptation costs a pass over the
+  // cells' shape-function gradients (evaluated once, at construction) and a partition when the
+  // region changes (docs/models.md gives the costs).
   bool adaptive = false;
   int32_t adapt_interval = 250;      // steps between adaptations, >= 1
   double refine_threshold = 0.01;    // in (0, 1]
@@ -139,11 +89,28 @@ class EfgHybridModel final : public TissueModel {
 
  private:
   EfgHybridModel();
+  // The region (efg_hybrid_region.cc). Partition: the kept nodes around `centre`, the extension
+  // T, S⁻¹, D, the reduced M_r, K_r, P_r and gravity's far response, from the static factor.
   void Partition(const Eigen::Vector3d& centre, TissueState* state) const;
   // Marks the nodes the intensity adds to the region; true when the region must change.
   bool Adapt(TissueState* state) const;
+  // Factorises K̃ for the state's supports (and cut); false when it cannot.
   bool FactoriseStatic(TissueState* state) const;
+  // The far response of node-point loads (3N): physical offsets into `offsets`, the parameters'
+  // in the state's full_solution.
   void ParticularResponse(const double* node_loads, double* offsets, TissueState* state) const;
+  // Advance's stages (efg_hybrid_step.cc). 1: the supports and the distinct attached nodes
+  // (false: more than the slots). 2: the static factor and the region, partitioned again when
+  // the supports, a cut, the tool or the adaptivity move it (false: K̃ cannot be factorised).
+  // 3: A's factor and the attached nodes' slots (false: A is not positive definite). 4: the
+  // far response of the loads that reach far parameters. 5: the right-hand side b.
+  bool GatherSupportsAndTools(const StepInputs& inputs, TissueState* state) const;
+  bool UpdateRegion(const StepInputs& inputs, TissueState* state) const;
+  bool PrepareStepFactor(double dt, TissueState* state) const;
+  void UpdateFarLoads(const StepInputs& inputs, TissueState* state) const;
+  void AssembleRightHandSide(const StepInputs& inputs, TissueState* state) const;
+  // The tools' low-rank update: slot `slot`'s Z columns A⁻¹ D_Iᵀ and G's row; the correction
+  // of the solution in the state's b (false: not positive definite, the step is rejected).
   void FillSlot(int32_t slot, int32_t node, TissueState* state) const;
   bool CorrectForAttachments(double dt, TissueState* state) const;
 

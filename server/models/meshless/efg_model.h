@@ -1,84 +1,8 @@
-// Element-free Galerkin (EFG) tissue model (SPEC §4.6, issue 13, first slice; seed 001:
-// "无网格迦辽金" — the surgical region's model, liver E = 5000 Pa, ν = 0.35, ρ = 1055 kg/m³),
-// behind the tissue-model interface. Pure kernel: no I/O.
-//
-// Discretisation. Nodes = the tet mesh's nodes; shape functions = MLS (mls.h: linear basis,
-// cubic-spline weight, ρ_J = 2 × distance to the 4th nearest node, at least 1.2 × the node's
-// longest tet edge). MLS is not interpolating: the unknowns are nodal parameters û_J
-// (3 × num_nodes) and the physical displacement at a point is u(x) = Σ_J φ_J(x) û_J; at the
-// nodes u(X_I) = Σ_J Φ_IJ û_J with Φ_IJ = φ_J(X_I) (num_nodes × num_nodes, sparse, precomputed).
-// state->positions are the PHYSICAL positions X_I + u(X_I); the state keeps û and v̂.
-//
-// Integration: the mesh's tetrahedra are background cells, each with a symmetric Gauss rule on
-// the tetrahedron (EfgParameters::gauss_points: 4 points, exact to degree 2 — the default; or
-// 14 points, exact to degree 5, Walkington's rule). MLS functions are rational and piecewise (the
-// spline's knots), so no rule integrates them exactly; the patch test's residual error measures
-// this and shrinks with the 14-point rule.
-//
-// Material: small-strain linear elasticity (Hooke, λ = Eν/((1+ν)(1-2ν)), μ = E/(2(1+ν))):
-//   K = Σ_gauss Bᵀ D B w |J|   (3N × 3N, sparse, symmetric; B the 6 × 3n strain of ∇φ),
-// elastic energy ½ ûᵀ K û. Masses: lumped, each tet's ρV split equally to its 4 nodes (m_I at the
-// node points), so the parameters' mass matrix is M̂ = Φᵀ diag(m) Φ (kinetic energy ½ Σ m_I |v_I|²
-// of the physical node velocities). Damping: Rayleigh, C = α M̂ + β K (the viscous part; seed 001
-// calls its model viscoelastic but gives no coefficients, so these are ours: α = 2 /s and
-// β = 0.01 s damp a liver's lowest modes, ω ≈ 7–20 rad/s, at ~15–20 % of critical).
-//
-// Loads at the node points enter through Φ: a point force F_I adds Φ_Iᵀ F_I to the parameters'
-// forces; gravity is the lumped equivalent, Φᵀ (m_I g); a grasp spring of stiffness k to target
-// t adds the energy ½ k |X_I + u_I - t|². Essential conditions (fixed and prescribed nodes) are
-// penalty springs at the node points, ½ κ |u_I - ū_I|² (κ = penalty_factor × max diagonal of K;
-// default 1e5: the constraint is met to ~1e-5 of the free response while the Cholesky factor
-// stays accurate). A fixed node is held where it was when it became fixed (the step before it
-// was not in the fixed set), so it does not drift step by step.
-//
-// Dynamics (Step): implicit Euler, linear in û (the model is linear):
-//   A Δv̂ = dt (f̂ - (K + P)(û + dt v̂) - C v̂ + Φᵀ g_springs),
-//   A = (1 + dt α) M̂ + (dt² + dt β) K + dt² P,   P = Σ_I s_I Φ_Iᵀ Φ_I (⊗ I₃),
-// s_I the node's summed spring stiffness. The springs are of two kinds:
-//  - supports: the penalty springs of fixed and prescribed nodes. They change rarely, so they
-//    are in the factorised matrix A0 = (1 + dt α) M̂ + (dt² + dt β) K + dt² P_s. A's pattern
-//    (supports that overlap) is fixed at construction and analysed once (CHOLMOD); A0 is
-//    factorised on the first step and again only when dt or a support's stiffness changes (a
-//    node fixed, released or prescribed). That re-factorisation allocates (with the static
-//    K_s = K + P_s LocalStiffness uses, factorised again only when the supports change: ~20–45 ms
-//    on liver288, ~10 s on liver4055).
-//  - attachments (StepInputs::attachments: grasps and contact springs): their stiffnesses and
-//    targets change every tick, so they enter by a low-rank update of A0's factor
-//    (Sherman–Morrison–Woodbury). For the m distinct attached nodes (summed stiffness k_j > 0)
-//    U = [Φ_Iᵀ e_x, Φ_Iᵀ e_y, Φ_Iᵀ e_z]_j (3N × 3m) and S = diag(dt² k_j ⊗ I₃), A = A0 + U S Uᵀ.
-//    With W = S^½ (never S⁻¹: a zero or tiny k stays harmless, and the 3m × 3m system tends to
-//    I for soft springs and to W G W — symmetric positive definite since Φ is invertible — for
-//    stiff ones):
-//      A⁻¹ b = x0 - Z W (I + W G W)⁻¹ W Uᵀ x0,   x0 = A0⁻¹ b,  Z = A0⁻¹ U,  G = Uᵀ Z.
-//    The state caches Z's 3 columns and G's rows per attached node in up to
-//    EfgParameters::max_low_rank_nodes slots (sized by MakeState, kept while A0 stands, the
-//    least recently attached evicted first): a node attached for the first time since A0 was
-//    factorised costs 3 solves; a change of stiffness or target costs one dense Cholesky of
-//    the 3m × 3m matrix (by hand, on preallocated storage) and 3m vector updates. A step with
-//    more distinct attached nodes than the slots falls back to factorising A with the
-//    attachments inside (every such step: correct, not interactive; max_low_rank_nodes = 0
-//    makes every step with an attachment take that path, as before the update existed). The
-//    update is exact algebra: the tests find it equal to that path to ~3e-13 (relative).
-// A step that factorises nothing allocates nothing. Factorisations() counts the factorisations.
-//
-// Cutting (issue 13, seed 001: meshless regions suit cutting because no element connectivity
-// has to be repaired): the visibility criterion (Belytschko, Lu & Gu 1994; Organ et al. 1996).
-// The cut surface is a set of triangles in the REFERENCE configuration; a node J stops
-// covering a point x when the segment X_J–x crosses the surface, so nodes on opposite sides of
-// a cut stop interacting. Cut() pulls the blade's swept quad back to the reference
-// configuration (each corner moved by the inverse-distance mean displacement of its 4 nearest
-// nodes), adds its two triangles, and re-evaluates the shape functions at the Gauss points and
-// node points some of whose segments cross them: their old contributions to K, Φ and M̂ leave,
-// the new ones enter (a cut only hides nodes, so every sparsity pattern and the symbolic
-// analysis keep). A point left with fewer than 4 visible supports, or an ill-conditioned
-// moment matrix, cannot carry a linear basis: a Gauss point is dropped from the integration
-// (its volume no longer contributes stiffness), a node point's Φ row falls back to e_I (the
-// node then moves with its own parameter); both are counted. The state carries the cut (its
-// own copies of Φ, K, M̂: a snapshot or replay carries it, the model stays read-only); the
-// state's physical positions and velocities are kept across a cut (the parameters follow,
-// û = Φ⁻¹ u with the new Φ), so the tissue does not jump, and the next step factorises again.
-// A cut allocates and costs the re-evaluations plus one factorisation: not for every tick of a
-// long incision on a large organ (see docs/models.md for the measured costs).
+// Element-free Galerkin (EFG) tissue model (SPEC §4.6, issue 13; seed 001's model of the
+// surgical region): MLS shape functions on the tet mesh's nodes, the tetrahedra as integration
+// cells, small-strain linear elasticity, implicit Euler on the nodal parameters with the tools'
+// springs by a low-rank update of the factor, and cutting by the visibility criterion.
+// Formulation and derivations: docs/models.md, "The EFG model in detail". Pure kernel: no I/O.
 #pragma once
 
 #include <Eigen/Core>
@@ -93,6 +17,9 @@
 #include "server/models/tissue_model.h"
 
 namespace somasim::models::meshless {
+
+struct EfgSystem;  // efg_system.h
+struct EfgValues;
 
 struct EfgParameters {
   double youngs_modulus = 5000.0;    // E [Pa], finite, > 0 (seed 001's liver)
@@ -109,7 +36,7 @@ struct EfgParameters {
   double speed_limit = 100.0;   // [m/s], finite, > 0: a faster node marks a diverged step
   // Distinct attached nodes a step handles by the low-rank update of the supports' factor, in
   // 0..kMaxLowRankNodes; a step with more factorises A with its attachments inside. Each slot
-  // costs MakeState 3 × 3·num_nodes doubles (64 on liver4055: ~19 MB per state).
+  // costs MakeState 3 × 3·num_nodes doubles.
   int max_low_rank_nodes = 64;
   static constexpr int kMaxLowRankNodes = 1024;
 };
@@ -154,7 +81,7 @@ class EfgModel final : public TissueModel {
                                                const EfgParameters& parameters);
   ~EfgModel() override;
 
-  int32_t num_nodes() const override { return static_cast<int32_t>(rest_.cols()); }
+  int32_t num_nodes() const override;
   std::unique_ptr<TissueState> MakeState() const override;
   // The tissue's condensed static stiffness at node I's point, (Φ_I K_s⁻¹ Φ_Iᵀ)⁻¹ [N/m] (3 × 3,
   // symmetric positive definite): the force a static point displacement of the node costs with
@@ -174,7 +101,7 @@ class EfgModel final : public TissueModel {
   // kinetic ½ Σ m_I |v_I|², elastic ½ ûᵀ K û (û from the state's positions), gravity -Σ m_I g·x_I.
   EnergyReport Energy(const TissueState& state, const Eigen::Vector3d& gravity) const override;
   bool SupportsCutting() const override { return true; }
-  // The cut hook (see the top of this file): returns the (node, point) pairs the sweep hid, 0
+  // The cut hook (docs/models.md, "Cutting"): returns the (node, point) pairs the sweep hid, 0
   // for a sweep that crosses none or has a non-finite corner. Allocates.
   int32_t Cut(const SweptQuad& sweep, TissueState* state) const override;
   // Cut's two parts, for the hybrid. PullBack: the sweep's corners in the reference
@@ -194,11 +121,11 @@ class EfgModel final : public TissueModel {
 
   // For tests and later slices.
   const MlsShapeFunctions& shape_functions() const { return *shape_; }
-  const std::vector<double>& masses() const { return mass_; }   // m_I [kg], num_nodes
-  const mesh::Points& rest_positions() const { return rest_; }  // X [m], 3 × num_nodes
-  double penalty() const { return penalty_; }                   // κ [N/m]
+  const std::vector<double>& masses() const;   // m_I [kg], num_nodes
+  const mesh::Points& rest_positions() const;  // X [m], 3 × num_nodes
+  double penalty() const;                      // κ [N/m]
   int64_t num_gauss_points() const { return num_gauss_; }
-  int64_t stiffness_blocks() const { return static_cast<int64_t>(block_row_.size()); }
+  int64_t stiffness_blocks() const;
   // The state's nodal parameters û [m], 3 × num_nodes.
   const mesh::Points& NodalParameters(const TissueState& state) const;
   // u(x) = Σ φ_J(x) û_J and its gradient ∇u (∂u_i/∂x_j) at a point x [m], for the state's û
@@ -224,32 +151,23 @@ class EfgModel final : public TissueModel {
   void Advance(const StepInputs& inputs, TissueState* state) const override;
 
  private:
-  friend class EfgHybridModel;  // reduces this model: reads its matrices and shape functions
+  friend class EfgHybridModel;  // reduces this model: reads its system and shape functions
   EfgModel();
-  struct Factors;  // Φ's sparse LU (for û from positions), kept out of this header
+  // FromTetMesh's stages after the checks: the shape functions and Φ's rows (with each node's
+  // longest incident tet edge); the Gauss points and the lower block pattern of the node pairs
+  // that share a Gauss or a node point; K, then M̂ and the rest (EfgSystem::Finish).
+  void BuildShapeFunctions(const mesh::TetMesh& mesh, const EfgParameters& parameters);
+  void BuildGaussPointsAndPattern(const mesh::TetMesh& mesh, const std::vector<double>& volume,
+                                  int gauss_points);
+  void BuildStiffness();
   // The values the kernels read: the model's, or a cut's (EfgCutValues).
-  struct Values {
-    const double* phi;  // Φ's entries on its pattern
-    const double* k;    // K's blocks, 9 × blocks
-    const double* m;    // M̂'s coefficients, blocks
-  };
-  Values ValuesOf(const EfgCutValues* cut) const;
-
-  // y = K x (x, y 3 × num_nodes flat) by the symmetric lower block storage.
-  void MultiplyStiffness(const Values& values, const double* x, double* y) const;
-  // y = Φ x and y = Φᵀ x (3 × num_nodes flat each).
-  void MultiplyPhi(const Values& values, const double* x, double* y) const;
-  void MultiplyPhiTransposed(const Values& values, const double* x, double* y) const;
-  // k_scale K + m_scale M̂ + s_scale Σ_I s_I Φ_Iᵀ Φ_I (s: num_nodes [N/m]) into `blocks`
-  // (9 × blocks, the lower block pattern) and gathered into `values` (the scalar lower CSC
-  // pattern).
-  void AssembleSystem(const Values& matrices, double k_scale, double m_scale, double s_scale,
-                      const double* s, double* blocks, double* values) const;
+  EfgValues ValuesOf(const EfgCutValues* cut) const;
   // Adds sign × a Gauss point's contribution w Bᵀ D B (its MLS evaluation with gradients, its
   // weight w = rule weight × volume [m³]) to K's blocks.
   void AddGaussPoint(const MlsEvaluation& eval, double w, double sign, double* k_blocks) const;
-  // The index of block (row, col), row >= col, in the lower block pattern.
-  int64_t BlockIndex(int32_t row, int32_t col) const;
+  // Step 1 of Advance: the springs at the node points (supports and attachments) and the
+  // distinct attached nodes.
+  void GatherSprings(const StepInputs& inputs, TissueState* state) const;
   // Step 2 of Advance: makes the state's factors current (the step's system with the supports
   // only, on the low-rank path, or with the attachments too; the static K_s) and, on the
   // low-rank path, the cached Z and G of this step's attached nodes. False when the step's
@@ -262,30 +180,13 @@ class EfgModel final : public TissueModel {
   // rejected).
   bool CorrectForAttachments(double dt, TissueState* state) const;
 
-  mesh::Points rest_;  // X [m], 3 × num_nodes
+  // The nodes, Φ (the system's rows R), K and M̂ on their patterns (efg_system.h).
+  std::unique_ptr<EfgSystem> system_;
   // The Gauss points [m] (3 × num_gauss, tet by tet) and their weights w |J| [m³] (num_gauss).
   mesh::Points gauss_x_;
   std::vector<double> gauss_w_;
   std::unique_ptr<MlsShapeFunctions> shape_;
-  std::vector<double> mass_;  // m_I [kg], num_nodes
-  // Φ by rows: node I's row is phi_node_/phi_value_[phi_start_[I] .. phi_start_[I+1]).
-  std::vector<int32_t> phi_start_, phi_node_;
-  std::vector<double> phi_value_;
-  // The lower block pattern of K and A: column c's blocks are block_row_[block_start_[c] ..
-  // block_start_[c+1]) (sorted rows >= c, the diagonal first); K's 3 × 3 blocks column-major at
-  // 9 × block index; M̂'s scalar coefficient (times I) per block.
-  std::vector<int64_t> block_start_;
-  std::vector<int32_t> block_row_;
-  std::vector<double> k_blocks_;  // [N/m], 9 × blocks
-  std::vector<double> m_blocks_;  // [kg], blocks
-  // The scalar lower CSC pattern (3N columns) and, per scalar entry, its block index and place
-  // in the block (b * 9 + r + 3 c).
-  std::vector<int32_t> csc_col_start_, csc_rows_;
-  std::vector<int64_t> csc_source_;
-  std::unique_ptr<Factors> factors_;
   double lambda_ = 0.0, mu_ = 0.0;  // Lamé [Pa]
-  double rayleigh_mass_ = 0.0, rayleigh_stiffness_ = 0.0;
-  double penalty_ = 0.0;  // κ [N/m]: the penalty springs
   int64_t num_gauss_ = 0;
   int32_t max_low_rank_nodes_ = 0;
 };

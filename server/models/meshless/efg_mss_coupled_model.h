@@ -1,44 +1,8 @@
 // Element-free Galerkin coupled to a mass-spring system (SPEC §4.6; seed 001's table 1 middle
-// variant, "耦合模型": its reference [14], Liu Xuemei 2013, EFG in the surgical region and a
-// mass-spring model (MSS) elsewhere; seed: 14.8 ms per step against 17.4 ms for pure EFG on a
-// 295-node liver, displacements within ±0.018 cm of pure EFG). Pure kernel: no I/O.
-//
-// One linear, monolithic model (one energy, one sparse system), so it is stable at 1 ms steps and
-// exact where it should be:
-//  - Region. The tetrahedra with a corner within region_radius of region_centre are meshless:
-//    integrated as the EFG (efg_model.h) does — MLS shape functions built on the nodes E of those
-//    tetrahedra only (same basis, weight, support rule: ρ_J >= min_support_edge_factor × the
-//    node's longest edge among them), the tetrahedra as background cells with the same Gauss rule,
-//    small-strain Hooke, K_E = Σ_gauss Bᵀ D B w |J|. The other tetrahedra are MSS.
-//  - MSS. Linear (small-displacement) axial springs on the MSS tetrahedra's unique edges: a
-//    spring (a, b) of rest direction e stores ½ k (eᵀ (u_b - u_a))² (the exact linearisation of
-//    a spring at its rest length: no transverse stiffness), k by the MassSpringModel's documented
-//    rule (Van Gelder 1998), k = E Σ_{MSS tets ∋ edge} V / |edge|². A spring network fixes ν at
-//    1/4 and is only approximately E: this, not the coupling, is what separates the coupled model
-//    from pure EFG.
-//  - Unknowns q: the EFG nodal parameters û_J of the region's nodes E (first, in increasing node
-//    order), then the physical displacements u_I of the MSS-only nodes. Node I's physical
-//    displacement is u_I = G_I q: G_I = Φ_I (MLS values φ_J(X_I), J in E) for I in E, the unit row
-//    of its own unknown otherwise. G is square (num_nodes × num_nodes) and invertible.
-//  - Interface nodes (corners of both kinds of tetrahedra) are in E: the springs touching them
-//    act through Φ_I, so force balance between the regions holds by construction (one energy,
-//    ½ qᵀ K q with K = K_E + Σ_springs k (G_b - G_a)ᵀ e eᵀ (G_b - G_a)) and displacement is
-//    continuous (one field at each node).
-//  - Masses: lumped, each tetrahedron's ρV/4 to its corners (both kinds; the MSS's rule too), so
-//    M̂ = Gᵀ diag(m) G. Damping: Rayleigh C = α M̂ + β K (EfgParameters). Loads at node points
-//    enter through Gᵀ; supports (fixed and prescribed nodes) are penalty springs ½ κ |u_I - ū_I|²
-//    at the node points, κ = penalty_factor × max diagonal of K, a fixed node held where it was
-//    when it became fixed — all as the EFG.
-//  - Dynamics: implicit Euler as the EFG's, A Δq̇ = dt (Gᵀ h - K (q + (β + dt) q̇)) with the
-//    node-point loads h_I = f_ext + m_I (g - α v_I) + Σ k (t - X_I) - s_I (u_I + dt v_I) (s_I the
-//    node's summed support and tool-spring stiffness, t their targets) and
-//    A = (1 + dt α) M̂ + (dt² + dt β) K + dt² Σ_I s_I G_Iᵀ G_I, one CHOLMOD factorisation (pattern
-//    analysed once, by MakeState), re-done only when dt or a node's summed spring stiffness
-//    changes. Attachments (tool springs) are inside A: a grasp whose target moves costs nothing,
-//    a change of its stiffness or node re-factorises (correct, allocates; a few ms on liver288
-//    with the default region, where the first step, both factors, takes 7–13 ms — no low-rank
-//    update as in EfgModel). A step that factorises nothing allocates nothing.
-// With the region covering every node this is EfgModel exactly; covering none, a linear MSS.
+// variant, its reference [14]): EFG on the tetrahedra near the surgical site, linear springs on
+// the other tetrahedra's edges, one energy and one sparse system over both. With the region
+// covering every node it is EfgModel; covering none, a linear mass-spring system. Derivations:
+// docs/models.md, "The coupled model in detail". Pure kernel: no I/O.
 #pragma once
 
 #include <Eigen/Core>
@@ -52,6 +16,8 @@
 #include "server/models/tissue_model.h"
 
 namespace somasim::models::meshless {
+
+struct EfgSystem;  // efg_system.h
 
 struct EfgMssCoupledParameters {
   // The material (E, ν for the EFG; E and ρ for the springs and masses), the EFG discretisation
@@ -74,7 +40,7 @@ class EfgMssCoupledModel final : public TissueModel {
                                                          const EfgMssCoupledParameters& parameters);
   ~EfgMssCoupledModel() override;
 
-  int32_t num_nodes() const override { return static_cast<int32_t>(rest_.cols()); }
+  int32_t num_nodes() const override;
   std::unique_ptr<TissueState> MakeState() const override;
   // (G_I K_s⁻¹ G_Iᵀ)⁻¹ [N/m], K_s = K + the supports' penalties of the state's last step (as
   // EfgModel's). Zero before the first step and without supports. Cached per node until the
@@ -97,11 +63,11 @@ class EfgMssCoupledModel final : public TissueModel {
   int32_t num_meshless_tets() const { return num_meshless_tets_; }
   bool IsEfgNode(int32_t node) const { return efg_of_node_[size_t(node)] >= 0; }
   const std::vector<double>& spring_stiffness() const { return spring_k_; }  // [N/m], springs
-  const std::vector<double>& masses() const { return mass_; }                // m_I [kg], nodes
-  const mesh::Points& rest_positions() const { return rest_; }               // X [m], 3 × nodes
-  double penalty() const { return penalty_; }                                // κ [N/m]
+  const std::vector<double>& masses() const;                                 // m_I [kg], nodes
+  const mesh::Points& rest_positions() const;                                // X [m], 3 × nodes
+  double penalty() const;                                                    // κ [N/m]
   int64_t num_gauss_points() const { return num_gauss_; }
-  int64_t stiffness_blocks() const { return static_cast<int64_t>(block_row_.size()); }
+  int64_t stiffness_blocks() const;
   int64_t Factorisations(const TissueState& state) const;  // the step's and the static factor
   // The state's unknowns q [m], 3 × num_nodes (E's parameters, then the MSS-only displacements).
   const mesh::Points& Unknowns(const TissueState& state) const;
@@ -113,42 +79,20 @@ class EfgMssCoupledModel final : public TissueModel {
 
  private:
   EfgMssCoupledModel();
-  struct Factors;  // G's sparse LU (q from positions), kept out of this header
-
-  void MultiplyStiffness(const double* x, double* y) const;  // y = K x (3 × num_nodes flat)
-  void MultiplyG(const double* x, double* y) const;          // y = G x
-  void MultiplyGTransposed(const double* x, double* y) const;
-  // k_scale K + m_scale M̂ + s_scale Σ_I s_I G_Iᵀ G_I into `blocks` (9 × blocks) and gathered
-  // into `values` (the scalar lower CSC pattern).
-  void AssembleSystem(double k_scale, double m_scale, double s_scale, const double* s,
-                      double* blocks, double* values) const;
-  int64_t BlockIndex(int32_t row, int32_t col) const;  // -1 when not in the pattern
+  // FromTetMesh's stages after the checks (efg_mss_coupled_model.cc).
+  struct Build;
   // Makes the step's factor (dt, the springs' stiffness) and the static factor (the supports)
   // current. False when the step's system is not positive definite.
   bool PrepareFactors(double dt, TissueState* state) const;
 
-  mesh::Points rest_;         // X [m], 3 × num_nodes
-  std::vector<double> mass_;  // m_I [kg], num_nodes
+  // The nodes, G (the system's rows R), K and M̂ on their patterns (efg_system.h).
+  std::unique_ptr<EfgSystem> system_;
   int32_t num_efg_ = 0, num_interface_ = 0, num_meshless_tets_ = 0;
   std::vector<int32_t> efg_of_node_;  // index in E or -1, num_nodes
-  // G by rows: node I's row is g_col_/g_value_[g_start_[I] .. g_start_[I+1]) (sorted columns).
-  std::vector<int32_t> g_start_, g_col_;
-  std::vector<double> g_value_;
   // The springs: nodes, stiffness k [N/m], rest direction e (3 × springs).
   std::vector<int32_t> spring_a_, spring_b_;
   std::vector<double> spring_k_;
   mesh::Points spring_dir_;
-  // The lower block pattern of K and A (as EfgModel's): column c's blocks are
-  // block_row_[block_start_[c] .. block_start_[c+1]), sorted, the diagonal first.
-  std::vector<int64_t> block_start_;
-  std::vector<int32_t> block_row_;
-  std::vector<double> k_blocks_;  // [N/m], 9 × blocks
-  std::vector<double> m_blocks_;  // [kg], blocks (times I₃)
-  std::vector<int32_t> csc_col_start_, csc_rows_;
-  std::vector<int64_t> csc_source_;
-  std::unique_ptr<Factors> factors_;
-  double rayleigh_mass_ = 0.0, rayleigh_stiffness_ = 0.0;
-  double penalty_ = 0.0;  // κ [N/m]
   int64_t num_gauss_ = 0;
 };
 

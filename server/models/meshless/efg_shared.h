@@ -1,7 +1,7 @@
-// What EfgModel and EfgMssCoupledModel share: the parameter checks, the Gauss rules, the scalar
-// lower CSC pattern of their 3N × 3N block systems, the penalty's scale, the node-value
-// matrix's LU factors (build; defined in efg_model_build.cc where not inline), and the supports
-// as penalty springs (each step). Pure: no I/O.
+// What the EFG models share besides their system (efg_system.h): the parameter checks, the
+// Gauss rules, the scalar lower CSC pattern of their 3N × 3N block systems, the penalty's scale,
+// the node-value matrix's LU factors (build; defined in efg_model_build.cc where not inline), and
+// the supports as penalty springs (static solves and each step). Pure: no I/O.
 #pragma once
 
 #include <Eigen/Core>
@@ -91,6 +91,20 @@ inline bool FactorNodeValueMatrix(const std::vector<int32_t>& start,
   const Eigen::SparseMatrix<double> phi_t = phi.transpose();
   lu_transposed->compute(phi_t);
   return lu->info() == Eigen::Success && lu_transposed->info() == Eigen::Success;
+}
+
+// The supports of static loads as penalty springs κ at the node points: each fixed node's (held
+// at rest) and each prescribed node's, summed into `s` [N/m] (num_nodes), the prescribed ones'
+// κ (target − X_I) [N] added to `h` (3 × num_nodes).
+inline void AddStaticSupports(const EfgStaticLoads& loads, const mesh::Points& rest, double penalty,
+                              std::vector<double>* s, mesh::Points* h) {
+  for (const int32_t node : loads.fixed_nodes) (*s)[size_t(node)] += penalty;
+  for (size_t k = 0; k < loads.prescribed_nodes.size(); ++k) {
+    const int32_t node = loads.prescribed_nodes[k];
+    (*s)[size_t(node)] += penalty;
+    h->col(node) +=
+        penalty * (loads.prescribed_positions->col(static_cast<Eigen::Index>(k)) - rest.col(node));
+  }
 }
 
 // A step's supports, node by node: add(node, target) for every fixed node (held where it was

@@ -8,6 +8,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "common/checks/finite.h"
 #include "server/models/cut_geometry.h"
 
 namespace somasim::models::meshless {
@@ -156,7 +157,7 @@ MlsShapeFunctions::MlsShapeFunctions(const mesh::Points& nodes, const MlsParamet
     double& r = radius_[size_t(i)];
     r *= parameters.support_scale;
     if (!min_radius.empty()) {
-      if (!(min_radius[size_t(i)] >= 0.0) || !std::isfinite(min_radius[size_t(i)])) {
+      if (!checks::FiniteNonNegative(min_radius[size_t(i)])) {
         Refuse("min_radius of node " + std::to_string(i) + " must be finite and >= 0");
       }
       r = std::max(r, min_radius[size_t(i)]);

@@ -1,31 +1,7 @@
-// Moving-least-squares (MLS) shape functions for the element-free Galerkin model (SPEC §4.6,
-// seed 001: "无网格迦辽金", element-free Galerkin with MLS approximation; Belytschko, Lu & Gu
-// 1994). Pure numerical functions on Eigen: no I/O.
-//
-// Approximation: u(x) = Σ_J φ_J(x) û_J over the nodes J whose support contains x, with
-//   φ_J(x) = p(x)ᵀ A(x)⁻¹ w_J(x) p(X_J),   A(x) = Σ_J w_J(x) p(X_J) p(X_J)ᵀ   (4 × 4 moments),
-// linear basis p = (1, x, y, z), so Σ_J φ_J = 1 and Σ_J φ_J X_J = x exactly (linear
-// reproduction: the patch test's condition). The basis is evaluated shifted to the evaluation
-// point and scaled by the mean support radius, (1, (X - x)/h): an affine change of the basis
-// leaves its span, hence φ_J, unchanged, and keeps A well conditioned at any coordinate offset.
-// Gradients: with γ = A⁻¹ p(x), φ_J = w_J γ·p(X_J) and ∂_k γ = A⁻¹ (∂_k p - ∂_k A γ),
-//   ∂_k φ_J = w_J ∂_k γ·p(X_J) + ∂_k w_J γ·p(X_J)   (Belytschko, Krongauz et al. 1996).
-//
-// Weight: the cubic spline w(r), r = |x - X_J| / ρ_J in [0, 1] (C², compact, w(1) = 0):
-//   w = 2/3 - 4 r² + 4 r³                 for r <= 1/2,
-//   w = 4/3 - 4 r + 4 r² - 4/3 r³         for 1/2 < r <= 1,   0 beyond.
-// Support radius of node J: ρ_J = max(support_scale · d_k(J), min_radius_J), with d_k(J) the
-// distance from X_J to its k-th nearest other node (k = support_neighbours). Defaults: scale
-// 2.0, k = 4: on a regular grid of spacing h, d_4 = h and ρ = 2h, about 33 nodes cover a point
-// (the usual 3D EFG density). min_radius lets a caller guarantee invertibility where node
-// spacing is irregular: the EFG model passes 1.2 × each node's longest incident tet edge, so
-// every point of a tetrahedron is inside the supports of its four (non-coplanar) corners with
-// r <= 0.83 and A is never singular inside the mesh.
-//
-// Neighbour search: a uniform grid of cells of edge ≈ the mean support radius in which each
-// node is listed in every cell its support's bounding box overlaps; an evaluation reads the one
-// cell holding x (O(nodes per cell), no O(N²)). Building the radii costs one grid query per
-// node as well.
+// Moving-least-squares (MLS) shape functions for the element-free Galerkin models (SPEC §4.6,
+// seed 001; Belytschko, Lu & Gu 1994): linear basis, cubic-spline weight, supports from the k-th
+// nearest node, neighbours from a uniform grid, and the visibility criterion for cuts.
+// Derivations: docs/models.md, "MLS shape functions in detail". Pure: no I/O.
 #pragma once
 
 #include <Eigen/Core>

@@ -7,6 +7,7 @@
 #include <stdexcept>
 #include <string>
 
+#include "common/checks/finite.h"
 #include "server/models/fem/hyperelastic.h"
 #include "server/models/reduced/nonlinear_model.h"
 
@@ -88,7 +89,7 @@ NnlsResult SparseNnls(const Eigen::MatrixXd& g, const Eigen::VectorXd& b, double
           "G has " + std::to_string(g.rows()) + " rows, b " + std::to_string(b.size()) + " values");
   Require(g.cols() >= 1 && g.rows() >= 1, "G is empty");
   Require(g.allFinite() && b.allFinite(), "G or b is not finite");
-  Require(std::isfinite(tolerance) && tolerance > 0.0, "tolerance must be > 0");
+  Require(checks::FinitePositive(tolerance), "tolerance must be > 0");
   Require(max_columns >= 1, "max_columns must be >= 1");
   const Eigen::Index columns = g.cols();
   const int limit = static_cast<int>(std::min<Eigen::Index>(max_columns, columns));
@@ -178,7 +179,7 @@ Cubature TrainCubature(const fem::FemModel& full, const Eigen::MatrixXd& modes,
   Require(modes.rows() == 3 * nodes && n >= 1, "modes must be 3N × n");
   Require(test_modes == nullptr || (test_modes->rows() == modes.rows() && test_modes->cols() == n),
           "test modes must be 3N × n like the modes");
-  Require(std::isfinite(settings.tolerance) && settings.tolerance > 0.0 && settings.tolerance < 1.0,
+  Require(checks::FinitePositive(settings.tolerance) && settings.tolerance < 1.0,
           "tolerance must lie in (0, 1)");
   Require(settings.max_elements >= 1, "max_elements must be >= 1");
   // The projections ξ_s (least squares, for modes that need not be orthonormal).

@@ -1,17 +1,7 @@
-// Energy-conserving sampling and weighting (ECSW; Farhat, Avery, Chapman & Cortial 2014, "Dimen-
-// sional reduction of nonlinear finite element dynamic models with finite rotations and energy-
-// based mesh sampling and weighting for computational efficiency"; issue 12, docs/reduced.md):
-// the cubature the nonlinear reduced model (nonlinear_model.h) evaluates its forces on. For
-// training displacements u_s (s = 1..S) projected onto the modes, ξ_s = Bᵀ u_s (least squares),
-// each element's reduced internal force g_es = −V_e D_eᵀ vec P(I + D_e ξ_s) (n values) is a
-// column block of G (nS × E), and the full reduced force b_s = Σ_e g_es the right-hand side.
-// Rows of snapshot s are divided by |b_s| (every snapshot counts alike, small loads too). A
-// snapshot whose projection onto the modes inverts an element (a large load's local dent the
-// modes do not hold) is left out and counted.
-// Weights w >= 0 with few non-zeros and |G w − b| <= tolerance |b| come from the
-// non-negative least squares of Lawson & Hanson (1974), stopped at the tolerance: a greedy
-// active set that adds the element with the largest gradient Gᵀ(b − G w) and keeps the weights
-// positive. Offline: allocates, seconds to a minute on liver4055.
+// Energy-conserving sampling and weighting (ECSW; Farhat, Avery, Chapman & Cortial 2014; issue
+// 12): the cubature the nonlinear reduced model (nonlinear_model.h) evaluates its forces on —
+// a few elements with positive weights from Lawson–Hanson non-negative least squares on training
+// displacements. Derivation: docs/reduced.md, "The cubature". Offline: allocates.
 #pragma once
 
 #include <Eigen/Core>

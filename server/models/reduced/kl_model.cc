@@ -1,12 +1,14 @@
 #include "server/models/reduced/kl_model.h"
 
-#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <stdexcept>
 #include <string>
 #include <utility>
+
+#include "common/checks/finite.h"
+#include "server/models/particle_mesh.h"
 
 namespace somasim::models::reduced {
 namespace {
@@ -46,18 +48,9 @@ void Require(bool ok, const std::string& what) {
 }  // namespace
 
 std::unique_ptr<KlReducedModel> KlReducedModel::Create(KlModelData data) {
+  CheckModalData(data.rest, data.masses, data.modes, "reduced model: ");
   const Eigen::Index nodes = data.rest.cols();
-  Require(nodes >= 1, "rest has no node");
-  Require(data.rest.allFinite(), "rest positions are not finite");
-  Require(
-      static_cast<Eigen::Index>(data.masses.size()) == nodes,
-      "masses: " + std::to_string(data.masses.size()) + " for " + std::to_string(nodes) + " nodes");
-  for (const double m : data.masses) Require(std::isfinite(m) && m > 0.0, "a mass is not > 0");
   const Eigen::Index n = data.modes.cols();
-  Require(data.modes.rows() == 3 * nodes && n >= 1 && n <= 3 * nodes,
-          "modes must be 3N × n with 1 <= n <= 3N, got " + std::to_string(data.modes.rows()) +
-              " × " + std::to_string(n) + " for N = " + std::to_string(nodes));
-  Require(data.modes.allFinite(), "a mode is not finite");
   Require(data.stiffness_modes.rows() == data.modes.rows() && data.stiffness_modes.cols() == n,
           "stiffness_modes (K B) must have the modes' shape");
   Require(data.stiffness_modes.allFinite(), "K B is not finite");
@@ -68,12 +61,9 @@ std::unique_ptr<KlReducedModel> KlReducedModel::Create(KlModelData data) {
   Require((data.reduced_stiffness - data.reduced_stiffness.transpose()).cwiseAbs().maxCoeff() <=
               1e-9 * scale,
           "the reduced stiffness is not symmetric");
-  Require(std::isfinite(data.creep_radius) && data.creep_radius >= 0.0,
-          "creep_radius must be >= 0");
-  Require(std::isfinite(data.penalty_stiffness) && data.penalty_stiffness > 0.0,
-          "penalty_stiffness must be > 0");
-  Require(std::isfinite(data.max_local_stiffness) && data.max_local_stiffness > 0.0,
-          "max_local_stiffness must be > 0");
+  Require(checks::FiniteNonNegative(data.creep_radius), "creep_radius must be >= 0");
+  Require(checks::FinitePositive(data.penalty_stiffness), "penalty_stiffness must be > 0");
+  Require(checks::FinitePositive(data.max_local_stiffness), "max_local_stiffness must be > 0");
   std::vector<uint8_t> has_curve(static_cast<size_t>(nodes), 0);
   for (size_t c = 0; c < data.creep.size(); ++c) {
     const CreepCurve& curve = data.creep[c];
@@ -83,10 +73,10 @@ std::unique_ptr<KlReducedModel> KlReducedModel::Create(KlModelData data) {
     Require(has_curve[static_cast<size_t>(curve.node)] == 0,
             which + "node " + std::to_string(curve.node) + " has another curve");
     has_curve[static_cast<size_t>(curve.node)] = 1;
-    Require(std::isfinite(curve.interval) && curve.interval > 0.0, which + "interval must be > 0");
+    Require(checks::FinitePositive(curve.interval), which + "interval must be > 0");
     Require(!curve.multiplier.empty(), which + "no sample");
     for (const double v : curve.multiplier) {
-      Require(std::isfinite(v) && v > 0.0, which + "a multiplier is not finite and > 0");
+      Require(checks::FinitePositive(v), which + "a multiplier is not finite and > 0");
     }
     Require(std::abs(curve.multiplier.front() - 1.0) <= 1e-6, which + "c(0) must be 1");
   }
@@ -198,13 +188,7 @@ Eigen::Matrix3d KlReducedModel::LocalStiffness(const TissueState& state, int32_t
   if (node < 0 || node >= num_nodes()) return Eigen::Matrix3d::Zero();
   const Eigen::Matrix3d compliance =
       CreepMultiplier(state) * compliance_[static_cast<size_t>(node)];
-  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eigen(compliance);
-  Eigen::Vector3d stiffness;
-  for (int k = 0; k < 3; ++k) {
-    const double c = eigen.eigenvalues()(k);
-    stiffness(k) = c * data_.max_local_stiffness > 1.0 ? 1.0 / c : data_.max_local_stiffness;
-  }
-  return eigen.eigenvectors() * stiffness.asDiagonal() * eigen.eigenvectors().transpose();
+  return CappedStiffness(compliance, data_.max_local_stiffness);
 }
 
 void KlReducedModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
@@ -218,12 +202,7 @@ EnergyReport KlReducedModel::Energy(const TissueState& state,
   EnergyReport e;
   const Eigen::VectorXd& xi = Coordinates(state);
   e.elastic = 0.5 * xi.dot(data_.reduced_stiffness * xi);
-  for (Eigen::Index i = 0; i < data_.rest.cols(); ++i) {
-    const double m = data_.masses[static_cast<size_t>(i)];
-    e.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
-    e.gravity -= m * gravity.dot(state.positions.col(i));
-    e.momentum += m * state.velocities.col(i);
-  }
+  AddKineticAndGravity(data_.masses, state, gravity, &e);
   return e;
 }
 

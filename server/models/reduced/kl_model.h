@@ -1,25 +1,8 @@
-// Seed 000's reduced model (SPEC §4.5; seed 000 §3–4, Karhunen–Loève with viscoelastic scaling):
-// the displacement field is U = B ξ with B the Karhunen–Loève modes of the full model's
-// snapshots (pod.h), and ξ solves the Galerkin-projected linear statics
-//   (Bᵀ K B) ξ = Bᵀ f                                            (seed 000 eq. 6)
-// — an n × n system (n = 8 in the seed) instead of the full one (12165 DOFs for liver4055) —
-// with K one stiffness chosen offline among candidates (the initial tangent, tangents at load
-// levels: reduce_fem.h). Viscoelasticity (seed 000 §4): the displacement due to the tool's load
-// is scaled by the recorded creep curve of the loaded node, c(t − t₀), t₀ when the load came on
-// (a load held since t₀; the seed's method — a time-varying load is treated as if it had been
-// constant since it came on). Quasi-static: no inertia (velocities are the step's displacement
-// over dt (B ξ̇), for display; they are not checked against a speed limit: only a non-finite
-// value rejects a step).
-//
-// Per step (allocation-free; cost O(3N n) for the reconstruction plus O(n²) per loaded node):
-//   r  = Σ_axis g_axis Bᵀ(m e_axis)           gravity (precomputed per axis)
-//      + c · Σ_{i loaded} B_iᵀ f_i            the tool's load, scaled by creep
-//      + Σ_{springs} k B_iᵀ (target − X_i)    grasps, prescribed and extra fixed nodes
-//   A  = Bᵀ K B + Σ_{springs} k B_iᵀ B_i      (factorised once when there are no springs)
-//   ξ  = A⁻¹ r,   x = X + B ξ,   v = (x − x_prev) / dt.
-// B_i are node i's three rows of B. The training supports are in the modes (they are zero
-// there); a fixed node the modes can move and prescribed nodes become stiff springs
-// (penalty_stiffness) to their targets. A reduced model cannot be cut.
+// Seed 000's reduced model (SPEC §4.5; seed 000 §3–4, Karhunen–Loève with viscoelastic
+// scaling): U = B ξ on Karhunen–Loève modes (pod.h), ξ from the Galerkin-projected linear statics
+// (Bᵀ K B) ξ = Bᵀ f with one stiffness chosen offline (reduce_fem.h), the tool's load scaled by
+// the loaded node's creep curve. Quasi-static; cannot be cut. Per-step equations:
+// docs/reduced.md, "Seed 000's model per step". Pure: no I/O.
 #pragma once
 
 #include <Eigen/Cholesky>

@@ -1,8 +1,12 @@
 #include "server/models/reduced/modal_field.h"
 
+#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
+#include <stdexcept>
+#include <string>
 
+#include "common/checks/finite.h"
 #include "server/models/cpu_features.h"
 
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -209,6 +213,34 @@ Eigen::Index NextLoadedBlock(const double* f, Eigen::Index first, Eigen::Index b
 }
 
 }  // namespace
+
+void CheckModalData(const mesh::Points& rest, const std::vector<double>& masses,
+                    const Eigen::MatrixXd& modes, const std::string& prefix) {
+  const auto require = [&prefix](bool ok, const std::string& what) {
+    if (!ok) throw std::invalid_argument(prefix + what);
+  };
+  const Eigen::Index nodes = rest.cols();
+  require(nodes >= 1, "rest has no node");
+  require(rest.allFinite(), "rest positions are not finite");
+  require(static_cast<Eigen::Index>(masses.size()) == nodes,
+          "masses: " + std::to_string(masses.size()) + " for " + std::to_string(nodes) + " nodes");
+  for (const double m : masses) require(checks::FinitePositive(m), "a mass is not > 0");
+  const Eigen::Index n = modes.cols();
+  require(modes.rows() == 3 * nodes && n >= 1 && n <= 3 * nodes,
+          "modes must be 3N × n with 1 <= n <= 3N, got " + std::to_string(modes.rows()) + " × " +
+              std::to_string(n) + " for N = " + std::to_string(nodes));
+  require(modes.allFinite(), "a mode is not finite");
+}
+
+Eigen::Matrix3d CappedStiffness(const Eigen::Matrix3d& compliance, double max_stiffness) {
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eigen(compliance);
+  Eigen::Vector3d stiffness;
+  for (int k = 0; k < 3; ++k) {
+    const double c = eigen.eigenvalues()(k);
+    stiffness(k) = c * max_stiffness > 1.0 ? 1.0 / c : max_stiffness;
+  }
+  return eigen.eigenvectors() * stiffness.asDiagonal() * eigen.eigenvectors().transpose();
+}
 
 int32_t AddProjectedLoads(const Eigen::MatrixXd& modes, const mesh::Points& f, Eigen::VectorXd* r) {
   const Eigen::Index nodes = f.cols();

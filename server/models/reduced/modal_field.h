@@ -1,18 +1,13 @@
-// The full field of a reduced model from its coordinates (issue 12): for each DOF k,
-//   x_k = X_k + Σ_j ξ_j B_kj,   v_k = Σ_j ξ̇_j B_kj,
-// with B (3N × n) held in single precision in chunks of 32 DOFs (chunk c holds its 32 rows of
-// every mode, mode after mode: one pass over B is one sequential stream), the sums in single
-// precision (ξ and ξ̇ rounded to float), x = X + u in double. 1.6 MB for liver4055 at 32 modes:
-// it stays in a 2 MB L2 cache where doubles would not. AVX-512 (where the CPU has it) does a
-// 16-DOF FMA per mode and checks each x and v as it stores them (non-finite; a velocity
-// component above the limit), so the model's Step needs no second pass over the nodes.
-// Positions differ from a double reconstruction by ~1e-7 of the displacement (the modes' own
-// rounding). Allocation-free after construction; pure.
+// The full field of a reduced model from its coordinates (issue 12): x = X + B ξ and v = B ξ̇,
+// from a single-precision copy of the modes in 32-DOF chunks (one sequential stream; AVX-512
+// where present), checked as it is written (docs/reduced.md, "The reconstruction"); and the
+// helpers both reduced models share. Allocation-free after construction; pure.
 #pragma once
 
 #include <Eigen/Core>
 #include <cstddef>
 #include <cstdint>
+#include <string>
 #include <vector>
 
 #include "common/mesh/mesh_types.h"
@@ -68,6 +63,17 @@ class ModalState : public TissueState {
   const ModalField* field_ = nullptr;
   const double* rest_ = nullptr;
 };
+
+// The data both reduced models check first: rest positions X (3 × N, N >= 1, finite), N masses
+// [kg] (each finite and > 0), modes B (3N × n, 1 <= n <= 3N, finite). Throws
+// std::invalid_argument(prefix + what is wrong).
+void CheckModalData(const mesh::Points& rest, const std::vector<double>& masses,
+                    const Eigen::MatrixXd& modes, const std::string& prefix);
+
+// A node's stiffness [N/m] from its compliance C [m/N] (3 × 3, symmetric): C⁻¹ in C's
+// eigenbasis, each direction's stiffness capped at max_stiffness [N/m] (where the modes barely
+// move the node, C⁻¹ would be huge or infinite).
+Eigen::Matrix3d CappedStiffness(const Eigen::Matrix3d& compliance, double max_stiffness);
 
 // r += Bᵀ f (B 3N × n, f 3 × N [N], r n): tools load a few nodes, so blocks of 8 nodes whose 24
 // values are all ±0 are skipped on an OR of their bits without the sign (a loop the compiler

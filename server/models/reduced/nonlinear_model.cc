@@ -1,6 +1,5 @@
 #include "server/models/reduced/nonlinear_model.h"
 
-#include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 #include <algorithm>
 #include <cmath>
@@ -9,119 +8,29 @@
 #include <string>
 #include <utility>
 
+#include "common/checks/finite.h"
 #include "server/models/fem/tet_elements.h"
+#include "server/models/particle_mesh.h"
+#include "server/models/reduced/nonlinear_internal.h"
 
 namespace somasim::models::reduced {
-namespace {
 
 using Eigen::Matrix3d;
+using nonlinear_internal::BeginViscous;
+using nonlinear_internal::NonlinearState;
 
-// The state: the reduced coordinates (ModalState) and the Prony variables of the sampled
-// elements, their last good copies, and the step's scratch, sized by MakeState.
-class NonlinearState final : public ModalState {
- public:
-  // QLV (fem_model.h's ViscousStep) per sampled element: h_k (9 × terms × m, term-minor) and
-  // the elastic stress S^e of the last step (9 × m) [Pa].
-  Eigen::VectorXd history, good_history, elastic_last, good_elastic_last;
-  // Scratch.
-  Eigen::VectorXd grad, stress, offset;     // 9m: vec(F − I), w V vec(P), the step's offset
-  Eigen::MatrixXd factors;                  // 9m × n: blockdiag(w V ∂P/∂F) D
-  Eigen::MatrixXd tangent, springs;         // n × n: the factor's matrix, the springs' part
-  Eigen::MatrixXd tissue_tangent;           // n × n: the tissue's, as last assembled
-  Eigen::LLT<Eigen::MatrixXd> llt;          // of the last tangent (plus springs), Galerkin
-  Eigen::PartialPivLU<Eigen::MatrixXd> lu;  // the same, Petrov–Galerkin (not symmetric)
-  bool petrov = false;
-  Eigen::VectorXd external, internal, residual, delta, spring_rhs, trial;  // n
-  mutable Eigen::MatrixXd local;  // n × 3: LocalStiffness's K̂⁻¹ B_iᵀ (or K̂⁻¹ Ψ_iᵀ)
-  double factor_springs = 0.0;    // the springs the factor holds (a signature; 0: none)
-  // The largest load the tissue has carried, |r|'s units (|Ψᵀ f_ext| + |springs' part|): Newton's
-  // floor (a released tissue's recovery has no load to be relative to).
-  double load_scale = 0.0;
-  // The static correction (c correction nodes): each node's effective force e of the last
-  // step and its QLV variables [N] (3 × c, 3 × c·terms, term-minor), their good copies; the
-  // field it adds, δ = Σ_p R_p e_p, and the last step's (3N [m]), with their good copies;
-  // whether δ and δ_prev are non-zero (while neither is, nothing touches the 3N vectors).
-  Eigen::MatrixXd corr_elastic, corr_history, good_corr_elastic, good_corr_history;
-  Eigen::VectorXd corr_field, corr_field_prev, good_corr_field, good_corr_field_prev;
-  Eigen::VectorXd corr_xi;  // n: the correction's part in the modes, δξ = Σ_p G_p e_p (scratch)
-  bool corr_nonzero = false, corr_prev_nonzero = false;
-  bool good_corr_nonzero = false, good_corr_prev_nonzero = false;
-  bool corr_active() const { return corr_nonzero || corr_prev_nonzero; }
-
-  // Factorises `tangent` (true: it is regular / positive definite) and solves with the factor
-  // in place (allocation-free: the factors are sized by MakeState).
-  bool Factorise() {
-    if (petrov) {
-      lu.compute(tangent);
-      // PartialPivLU does not report singularity: a zero or non-finite pivot is the sign.
-      const auto diagonal = lu.matrixLU().diagonal();
-      return diagonal.allFinite() && diagonal.cwiseAbs().minCoeff() > 0.0;
-    }
-    llt.compute(tangent);
-    return llt.info() == Eigen::Success;
-  }
-  template <typename Derived>
-  void SolveInPlace(Eigen::MatrixBase<Derived>& v) const {
-    if (petrov) {
-      v = lu.solve(v);
-    } else {
-      llt.solveInPlace(v);
-    }
-  }
-
-  // Adds δ to the positions and (δ − δ_prev) / dt to the velocities just rebuilt from ξ.
-  void ApplyCorrection() {
-    if (!corr_active()) return;
-    Eigen::Map<Eigen::VectorXd>(positions.data(), positions.size()) += corr_field;
-    if (dt > 0.0) {
-      Eigen::Map<Eigen::VectorXd>(velocities.data(), velocities.size()) +=
-          (corr_field - corr_field_prev) / dt;
-    }
-    checked_non_finite_ = checked_non_finite_ || !corr_field.allFinite();
-  }
-
- protected:
-  void SaveGood() override {
-    SaveModal();
-    good_history = history;
-    good_elastic_last = elastic_last;
-    if (corr_elastic.size() > 0) {  // same sizes: no allocation
-      good_corr_elastic = corr_elastic;
-      good_corr_history = corr_history;
-    }
-    if (corr_active() || good_corr_nonzero || good_corr_prev_nonzero) {
-      good_corr_field = corr_field;
-      good_corr_field_prev = corr_field_prev;
-    }
-    good_corr_nonzero = corr_nonzero;
-    good_corr_prev_nonzero = corr_prev_nonzero;
-  }
-  void RestoreGood() override {
-    history = good_history;
-    elastic_last = good_elastic_last;
-    if (corr_elastic.size() > 0) {
-      corr_elastic = good_corr_elastic;
-      corr_history = good_corr_history;
-    }
-    if (corr_active() || good_corr_nonzero || good_corr_prev_nonzero) {
-      corr_field = good_corr_field;
-      corr_field_prev = good_corr_field_prev;
-    }
-    corr_nonzero = good_corr_nonzero;
-    corr_prev_nonzero = good_corr_prev_nonzero;
-    RestoreModal();
-    ApplyCorrection();
-  }
-};
+namespace {
 
 void Require(bool ok, const std::string& what) {
   if (!ok) throw std::invalid_argument("nonlinear reduced model: " + what);
 }
 
-// The step's QLV context: g and each element's offset (9 × m) from the state's variables.
-double BeginViscous(const std::vector<fem::PronyTerm>& prony, double dt,
-                    const Eigen::VectorXd& history, const Eigen::VectorXd& elastic_last,
-                    Eigen::VectorXd* offset) {
+}  // namespace
+
+double nonlinear_internal::BeginViscous(const std::vector<fem::PronyTerm>& prony, double dt,
+                                        const Eigen::VectorXd& history,
+                                        const Eigen::VectorXd& elastic_last,
+                                        Eigen::VectorXd* offset) {
   if (prony.empty() || !(dt > 0.0)) {
     offset->setZero();
     return 1.0;
@@ -148,8 +57,6 @@ double BeginViscous(const std::vector<fem::PronyTerm>& prony, double dt,
   return g;
 }
 
-}  // namespace
-
 Eigen::Matrix<double, 9, Eigen::Dynamic> ElementGradientMap(
     const Eigen::MatrixXd& modes, const Eigen::Ref<const Eigen::Matrix<int32_t, 4, 1>>& corners,
     const Eigen::Ref<const Eigen::Matrix<double, 3, 4>>& gradients) {
@@ -162,18 +69,9 @@ Eigen::Matrix<double, 9, Eigen::Dynamic> ElementGradientMap(
 }
 
 std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearModelData data) {
+  CheckModalData(data.rest, data.masses, data.modes, "nonlinear reduced model: ");
   const Eigen::Index nodes = data.rest.cols();
-  Require(nodes >= 1, "rest has no node");
-  Require(data.rest.allFinite(), "rest positions are not finite");
-  Require(
-      static_cast<Eigen::Index>(data.masses.size()) == nodes,
-      "masses: " + std::to_string(data.masses.size()) + " for " + std::to_string(nodes) + " nodes");
-  for (const double m : data.masses) Require(std::isfinite(m) && m > 0.0, "a mass is not > 0");
   const Eigen::Index n = data.modes.cols();
-  Require(data.modes.rows() == 3 * nodes && n >= 1 && n <= 3 * nodes,
-          "modes must be 3N × n with 1 <= n <= 3N, got " + std::to_string(data.modes.rows()) +
-              " × " + std::to_string(n) + " for N = " + std::to_string(nodes));
-  Require(data.modes.allFinite(), "a mode is not finite");
   Require(data.test_modes.size() == 0 ||
               (data.test_modes.rows() == data.modes.rows() && data.test_modes.cols() == n),
           "test_modes must be empty or 3N × n like the modes, got " +
@@ -185,7 +83,7 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
   Require(static_cast<Eigen::Index>(data.weights.size()) == m,
           "weights: " + std::to_string(data.weights.size()) + " for " + std::to_string(m) +
               " elements");
-  for (const double w : data.weights) Require(std::isfinite(w) && w > 0.0, "a weight is not > 0");
+  for (const double w : data.weights) Require(checks::FinitePositive(w), "a weight is not > 0");
   Require(data.elements.empty() || static_cast<Eigen::Index>(data.elements.size()) == m,
           "elements: " + std::to_string(data.elements.size()) + " for " + std::to_string(m) +
               " sampled elements");
@@ -205,17 +103,14 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
   Require(data.prony.size() <= fem::kMaxPronyTerms, "more than 4 Prony terms");
   double gamma_sum = 0.0;
   for (const fem::PronyTerm& t : data.prony) {
-    Require(std::isfinite(t.gamma) && t.gamma >= 0.0 && std::isfinite(t.tau) && t.tau > 0.0,
+    Require(checks::FiniteNonNegative(t.gamma) && checks::FinitePositive(t.tau),
             "a Prony term needs gamma >= 0 and tau > 0");
     gamma_sum += t.gamma;
   }
   Require(gamma_sum <= 1.0, "the Prony gammas sum above 1");
-  Require(std::isfinite(data.penalty_stiffness) && data.penalty_stiffness > 0.0,
-          "penalty_stiffness must be > 0");
-  Require(std::isfinite(data.max_local_stiffness) && data.max_local_stiffness > 0.0,
-          "max_local_stiffness must be > 0");
-  Require(std::isfinite(data.newton_tolerance) && data.newton_tolerance > 0.0,
-          "newton_tolerance must be > 0");
+  Require(checks::FinitePositive(data.penalty_stiffness), "penalty_stiffness must be > 0");
+  Require(checks::FinitePositive(data.max_local_stiffness), "max_local_stiffness must be > 0");
+  Require(checks::FinitePositive(data.newton_tolerance), "newton_tolerance must be > 0");
   Require(data.max_newton_iterations >= 1, "max_newton_iterations must be >= 1");
   const auto c = static_cast<Eigen::Index>(data.correction_nodes.size());
   Require(data.corrections.size() == 0
@@ -233,7 +128,7 @@ std::unique_ptr<NonlinearReducedModel> NonlinearReducedModel::Create(NonlinearMo
               " magnitudes and c = " + std::to_string(c) + " nodes");
   for (size_t k = 0; k < data.correction_magnitudes.size(); ++k) {
     const double f = data.correction_magnitudes[k];
-    Require(std::isfinite(f) && f > 0.0 && (k == 0 || f > data.correction_magnitudes[k - 1]),
+    Require(checks::FinitePositive(f) && (k == 0 || f > data.correction_magnitudes[k - 1]),
             "correction_magnitudes must be finite, > 0 and increasing");
   }
   Require(data.correction_scales.allFinite() && (data.correction_scales.array() >= 0.0).all(),
@@ -388,275 +283,6 @@ std::unique_ptr<TissueState> NonlinearReducedModel::MakeState() const {
   return state;
 }
 
-void NonlinearReducedModel::Advance(const StepInputs& inputs, TissueState* base) const {
-  auto* s = static_cast<NonlinearState*>(base);
-  // Loads: gravity and the tool's forces (projected), then the springs' constant part.
-  s->external.noalias() = gravity_modes_ * inputs.gravity;
-  if (inputs.external_forces != nullptr) {
-    AddProjectedLoads(TestModes(), *inputs.external_forces, &s->external);
-  }
-  const bool springs =
-      SpringTerms(data_.modes, TestModes(), data_.rest, moves_.data(), data_.penalty_stiffness,
-                  inputs, s->positions, &s->springs, &s->spring_rhs);
-  const double g = BeginViscous(data_.prony, inputs.dt, s->history, s->elastic_last, &s->offset);
-  const double* offset = data_.prony.empty() ? nullptr : s->offset.data();
-  // Newton's method, reusing the last factor while it halves the residual, with a backtracking
-  // line search on |r| (a correction that inverts an element or raises |r| is halved; with a
-  // reused factor, the tangent is refreshed first).
-  // The predictor: the last step's change again (a smooth load history at 1 kHz then starts
-  // Newton next to the answer), when the step is as long as the last one and its residual is
-  // the smaller.
-  // Converged at |r| <= tol × max(|Ψᵀ f_ext| + |Ψᵀ f_int| (+ springs), the largest load of a
-  // converged step so far): with no load at all (a release, the tissue recovering) the first
-  // alone cannot be met but in rounding, and each step would run to its limit.
-  const double applied = s->external.norm() + (springs ? s->spring_rhs.norm() : 0.0);
-  const double residual_floor = data_.newton_tolerance * s->load_scale;
-  const bool extrapolate = s->dt == inputs.dt;
-  s->trial = s->xi + (s->xi - s->xi_prev);
-  s->xi_prev = s->xi;
-  s->dt = inputs.dt;
-  double scale = 0.0;
-  // r at ξ (into s->residual; s->grad and s->stress follow ξ); false if an element inverts or a
-  // value is not finite.
-  const auto evaluate = [&](const Eigen::VectorXd& xi, double* norm) {
-    s->grad.noalias() = gradient_map_ * xi;
-    if (!Stresses(s->grad.data(), g, offset, s->stress.data())) return false;
-    s->internal.noalias() = -(TestMap().transpose() * s->stress);
-    s->residual = s->external + s->internal;
-    scale = s->external.norm() + s->internal.norm();
-    if (springs) {
-      s->residual += s->spring_rhs;
-      s->residual.noalias() -= s->springs * xi;
-      scale += s->spring_rhs.norm();
-    }
-    *norm = s->residual.norm();
-    return std::isfinite(*norm);
-  };
-  // The factor of the tissue's tangent plus the springs: with `assemble`, the tissue's tangent
-  // at ξ first (s->grad must be ξ's; O(|E| (81 n + 9 n²)), the expensive part), else the last
-  // one assembled (an n × n factorisation, O(n³ / 3): what a change of springs costs).
-  const auto refactor = [&](bool assemble) {
-    if (assemble) {
-      TangentFactors(s->grad.data(), g, offset, s->factors.data());
-      s->tissue_tangent.noalias() = TestMap().transpose() * s->factors;
-    }
-    s->tangent = s->tissue_tangent;
-    if (springs) s->tangent += s->springs;
-    return s->Factorise();
-  };
-  double norm = 0.0;
-  bool ok = evaluate(s->xi, &norm);
-  double predicted = 0.0;
-  if (ok && extrapolate && evaluate(s->trial, &predicted)) {
-    if (predicted < norm) {  // the buffers hold the predictor's r, grad and stress
-      s->xi = s->trial;
-      norm = predicted;
-    } else {
-      ok = evaluate(s->xi, &norm);
-    }
-  } else if (ok && extrapolate) {
-    ok = evaluate(s->xi, &norm);
-  }
-  bool converged = false;
-  // When the springs differ from those of the factor (their stiffness dwarfs the tissue's: a
-  // factor without them barely helps), the factor is remade with them on the last tissue
-  // tangent — cheap; the same springs with moved targets (a grasp being pulled) keep it.
-  double signature = 0.0;
-  if (springs) {
-    for (const Attachment& a : inputs.attachments) {
-      signature += (a.node + 1.0) * (1.0 + 1e-3 * a.stiffness);
-    }
-    signature += 7.0 * static_cast<double>(inputs.prescribed_nodes.size());
-    signature += 1e-9 * s->springs.trace();
-  }
-  if (ok && signature != s->factor_springs) {
-    s->factor_springs = signature;
-    ok = refactor(false);
-  }
-  bool refresh = false, fresh = false;
-  int iterations = 0;
-  while (ok) {
-    if (norm <= std::max(data_.newton_tolerance * scale, residual_floor) || norm == 0.0) {
-      converged = true;
-      break;
-    }
-    if (iterations >= data_.max_newton_iterations) break;
-    if (refresh && !fresh) {
-      if (!refactor(true)) {
-        ok = false;
-        break;
-      }
-      fresh = true;
-    }
-    s->delta = s->residual;
-    s->SolveInPlace(s->delta);
-    double alpha = 1.0, trial_norm = 0.0;
-    int halvings = 0;
-    while (true) {
-      s->trial = s->xi + alpha * s->delta;
-      const bool trial_ok = evaluate(s->trial, &trial_norm);
-      if (trial_ok && (trial_norm < norm ||
-                       trial_norm <= std::max(data_.newton_tolerance * scale, residual_floor))) {
-        break;
-      }
-      if (!fresh) {  // a stale factor's direction: refresh it at ξ and start again
-        double again = 0.0;
-        ok = evaluate(s->xi, &again) && refactor(true);
-        if (!ok) break;
-        fresh = true;
-        s->delta = s->residual;
-        s->SolveInPlace(s->delta);
-        alpha = 1.0;
-        continue;
-      }
-      if (++halvings > 12) break;  // no progress (rounding): keep ξ, unconverged
-      alpha *= 0.5;
-    }
-    if (!ok) break;
-    if (halvings > 12) {
-      double again = 0.0;
-      ok = evaluate(s->xi, &again);  // grad and stress back at ξ
-      break;
-    }
-    s->xi = s->trial;  // s->residual, grad and stress are the trial's
-    ++iterations;
-    refresh = trial_norm > 0.5 * norm;
-    fresh = false;
-    norm = trial_norm;
-  }
-  s->counters.solver_iterations += iterations;
-  if (!ok) {
-    s->xi.setConstant(std::numeric_limits<double>::quiet_NaN());  // rejected: rolled back
-    s->Rebuild();
-    return;
-  }
-  if (converged) {
-    s->load_scale = std::max(s->load_scale, applied);
-  } else {
-    ++s->counters.solver_unconverged;
-  }
-  // The Prony variables advance with the accepted elastic stresses S^e = F⁻¹ P^e.
-  if (!data_.prony.empty()) {
-    const size_t terms = data_.prony.size();
-    double decay[fem::kMaxPronyTerms] = {}, weight[fem::kMaxPronyTerms] = {};
-    for (size_t k = 0; k < terms; ++k) {
-      double beta = 0.0;
-      fem::PronyFactors(data_.prony[k], inputs.dt, &decay[k], &beta);
-      weight[k] = data_.prony[k].gamma * beta;
-    }
-    const Eigen::Index m = data_.tets.cols();
-    for (Eigen::Index e = 0; e < m; ++e) {
-      const Matrix3d f = Matrix3d::Identity() + Eigen::Map<const Matrix3d>(s->grad.data() + 9 * e);
-      const Matrix3d now = f.inverse() * fem::FirstPiolaStress(data_.material, f);
-      Eigen::Map<Matrix3d> last(s->elastic_last.data() + 9 * e);
-      for (size_t k = 0; k < terms; ++k) {
-        Eigen::Map<Matrix3d> h(s->history.data() + 9 * (e * static_cast<Eigen::Index>(terms) +
-                                                        static_cast<Eigen::Index>(k)));
-        h = decay[k] * h + weight[k] * (now - last);
-      }
-      last = now;
-    }
-  }
-  if (!data_.correction_nodes.empty()) Correct(inputs, s);
-  s->Rebuild();
-  s->ApplyCorrection();
-}
-
-NonlinearReducedModel::Bracket NonlinearReducedModel::MagnitudeBracket(double magnitude) const {
-  // Piecewise linear through the origin's value and (f_m, value_m), held beyond the last.
-  const std::vector<double>& f = data_.correction_magnitudes;
-  double f0 = 0.0;
-  for (size_t m = 0; m < f.size(); ++m) {
-    if (magnitude <= f[m]) {
-      const double w = (magnitude - f0) / (f[m] - f0);  // f[m] > f0 >= 0
-      return {static_cast<Eigen::Index>(m) - 1, 1.0 - w, static_cast<Eigen::Index>(m), w};
-    }
-    f0 = f[m];
-  }
-  return {-1, 0.0, static_cast<Eigen::Index>(f.size()) - 1, 1.0};
-}
-
-double NonlinearReducedModel::CorrectionScale(Eigen::Index node, double magnitude) const {
-  if (data_.correction_magnitudes.empty()) return 1.0;
-  const Bracket b = MagnitudeBracket(magnitude);  // κ through (0, 1)
-  return b.low_weight * (b.low < 0 ? 1.0 : data_.correction_scales(b.low, node)) +
-         b.high_weight * data_.correction_scales(b.high, node);
-}
-
-void NonlinearReducedModel::Correct(const StepInputs& inputs, TissueState* base) const {
-  auto* s = static_cast<NonlinearState*>(base);
-  // Each correction node's effective force e: the external force through the QLV recursion of
-  // the elements' stresses (BeginViscous and the history update above, on a 3-vector), then
-  // δ = Σ_p R_p e_p over the nodes whose e is not negligible.
-  const size_t terms = data_.prony.size();
-  double decay[fem::kMaxPronyTerms] = {}, weight[fem::kMaxPronyTerms] = {};
-  double g = 1.0;
-  const bool viscous = terms > 0 && inputs.dt > 0.0;
-  if (viscous) {
-    for (size_t k = 0; k < terms; ++k) {
-      double beta = 0.0;
-      fem::PronyFactors(data_.prony[k], inputs.dt, &decay[k], &beta);
-      weight[k] = data_.prony[k].gamma * beta;
-      g += weight[k] - data_.prony[k].gamma;
-    }
-  }
-  // δ_prev ← δ, δ ← 0 (the 3N vectors touched only when one is non-zero; same sizes).
-  if (s->corr_nonzero) {
-    s->corr_field_prev = s->corr_field;
-    s->corr_field.setZero();
-  } else if (s->corr_prev_nonzero) {
-    s->corr_field_prev.setZero();
-  }
-  s->corr_prev_nonzero = s->corr_nonzero;
-  s->corr_nonzero = false;
-  const bool in_modes = s->corr_xi.size() > 0;
-  if (in_modes) s->corr_xi.setZero();
-  for (Eigen::Index k = 0; k < static_cast<Eigen::Index>(data_.correction_nodes.size()); ++k) {
-    const int32_t p = data_.correction_nodes[static_cast<size_t>(k)];
-    Eigen::Vector3d f = Eigen::Vector3d::Zero();
-    if (inputs.external_forces != nullptr) f = inputs.external_forces->col(p);
-    auto last = s->corr_elastic.col(k);
-    Eigen::Vector3d e = f;
-    if (viscous) {
-      Eigen::Vector3d offset = Eigen::Vector3d::Zero();
-      for (size_t t = 0; t < terms; ++t) {
-        offset += decay[t] * s->corr_history.col(k * static_cast<Eigen::Index>(terms) +
-                                                 static_cast<Eigen::Index>(t)) -
-                  weight[t] * last;
-      }
-      e = (f - offset) / g;
-      for (size_t t = 0; t < terms; ++t) {
-        auto h = s->corr_history.col(k * static_cast<Eigen::Index>(terms) +
-                                     static_cast<Eigen::Index>(t));
-        h = decay[t] * h + weight[t] * (e - last);
-      }
-    }
-    last = e;
-    const double magnitude = e.norm();
-    if (magnitude > 1e-9) {  // [N]: below it the dent is ~1e-11 m
-      const double kappa = CorrectionScale(k, magnitude);
-      s->corr_field.noalias() += data_.corrections.middleCols<3>(3 * k) * (kappa * e);
-      if (in_modes) AddCoefficientCorrection(k, e, magnitude, &s->corr_xi);
-      s->corr_nonzero = true;
-    }
-  }
-  if (in_modes && s->corr_nonzero) s->corr_field.noalias() += data_.modes * s->corr_xi;
-}
-
-void NonlinearReducedModel::AddCoefficientCorrection(Eigen::Index node, const Eigen::Vector3d& e,
-                                                     double magnitude, Eigen::VectorXd* xi) const {
-  // G_p(|e|) φ(e), G_p through (0, 0) (MagnitudeBracket).
-  const auto count = static_cast<Eigen::Index>(data_.correction_magnitudes.size());
-  const Eigen::Vector4d phi = CorrectionFeatures(e);
-  const Bracket b = MagnitudeBracket(magnitude);
-  xi->noalias() += data_.correction_coefficients.middleCols<4>(4 * (node * count + b.high)) *
-                   (b.high_weight * phi);
-  if (b.low >= 0) {
-    xi->noalias() += data_.correction_coefficients.middleCols<4>(4 * (node * count + b.low)) *
-                     (b.low_weight * phi);
-  }
-}
-
 void NonlinearReducedModel::ReducedForces(const TissueState& state, const Eigen::VectorXd& xi,
                                           double dt, Eigen::VectorXd* force,
                                           Eigen::MatrixXd* tangent) const {
@@ -686,13 +312,7 @@ Eigen::Matrix3d NonlinearReducedModel::LocalStiffness(const TissueState& state,
   s.SolveInPlace(s.local);
   Matrix3d compliance = rows * s.local;
   compliance = 0.5 * (compliance + compliance.transpose()).eval();
-  const Eigen::SelfAdjointEigenSolver<Matrix3d> eigen(compliance);
-  Eigen::Vector3d stiffness;
-  for (int k = 0; k < 3; ++k) {
-    const double c = eigen.eigenvalues()(k);
-    stiffness(k) = c * data_.max_local_stiffness > 1.0 ? 1.0 / c : data_.max_local_stiffness;
-  }
-  return eigen.eigenvectors() * stiffness.asDiagonal() * eigen.eigenvectors().transpose();
+  return CappedStiffness(compliance, data_.max_local_stiffness);
 }
 
 void NonlinearReducedModel::InternalForces(const TissueState& state, mesh::Points* forces) const {
@@ -712,12 +332,7 @@ EnergyReport NonlinearReducedModel::Energy(const TissueState& state,
                                            const Eigen::Vector3d& gravity) const {
   EnergyReport report;
   report.elastic = ElasticEnergyAt(Coordinates(state));
-  for (Eigen::Index i = 0; i < data_.rest.cols(); ++i) {
-    const double m = data_.masses[static_cast<size_t>(i)];
-    report.kinetic += 0.5 * m * state.velocities.col(i).squaredNorm();
-    report.gravity -= m * gravity.dot(state.positions.col(i));
-    report.momentum += m * state.velocities.col(i);
-  }
+  AddKineticAndGravity(data_.masses, state, gravity, &report);
   return report;
 }
 

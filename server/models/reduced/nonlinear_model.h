@@ -1,80 +1,9 @@
-// The nonlinear reduced model that beats seed 000's (issue 12, SPEC §4.5; docs/reduced.md): the
-// displacement is U = B ξ on modes B (3N × n) as in seed 000, but instead of one linear reduced
-// stiffness it solves the Galerkin projection of the full hyperelastic–viscoelastic equilibrium
-//   r(ξ) = Bᵀ f_ext + Bᵀ f_int(X + B ξ) = 0,
-// with the reduced internal force and tangent evaluated by energy-conserving sampling and
-// weighting (ECSW; Farhat, Avery, Chapman & Cortial 2014): a few elements ê with weights w_ê > 0
-// (ecsw.h) stand in for the sum over all elements,
-//   Bᵀ f_int ≈ −Σ_ê w_ê V_ê D_êᵀ vec P(F_ê),   K̂ = Σ_ê w_ê V_ê D_êᵀ (∂P/∂F)_ê D_ê,
-// where D_ê (9 × n) maps ξ to the element's displacement gradient, vec(F_ê − I) = D_ê ξ, so an
-// element costs O(9 n) for its force and O(81 n + 9 n²) for its tangent, independently of N.
-// The weights are positive, so the reduced forces stay the gradient of a positive-weighted sum
-// of element energies (Lagrangian structure, stability).
-// Material: the full model's hyperelastic law (hyperelastic.h) and QLV (fem_model.h's
-// ViscousStep: S = g S^e(F) + offset, P = F S) with the Prony internal variables kept on the
-// sampled elements only — the viscoelasticity lives in the reduced space, not in a creep
-// multiplier, so loads that vary, move or are released relax as the full model does.
-//
-// Quasi-static, as the full model's SolveQuasiStatic and seed 000's model (no inertia; the
-// velocities are the step's displacement over dt, for display): each step solves r(ξ) = 0 by
-// Newton's method with the reduced tangent (an n × n Cholesky factorisation), reusing the last
-// factor while it shrinks the residual at least twofold per iteration (modified Newton: a held
-// or slowly moving load costs one or two force evaluations and no tangent), with a backtracking
-// line search on |r| (a correction that would invert an element or raise |r| is halved, after
-// refreshing a reused factor); a load too large to balance ends the step unconverged (counted)
-// at the last iterate, no element inverted. Each step starts from the last step's change
-// (a predictor) when that leaves the smaller residual. Grasps, prescribed nodes and fixed nodes
-// the modes can move are springs (penalty_stiffness) in r and K̂; a change of springs (a probe's
-// contact moving over the surface) re-factors the last assembled tissue tangent plus the new
-// springs (O(n³/3)) without assembling it again. The Prony variables advance once the step has
-// converged. Allocation-free; the full field is
-// reconstructed once per step (modal_field.h). A reduced model cannot be cut.
-//
-// Static correction (residual flexibility; the "static correction" of mode truncation, e.g.
-// Craig & Kurdila 2006 §14.4, Géradin & Rixen 2015 §5.3): a Galerkin model on modes B is stiffer
-// than the full one — the local dent under a point force is not in span(B) — so the reduced
-// displacement under a tool's push falls short (measured on the liver: 5–29 % at the loaded
-// node). For point forces at the correction nodes (the builder's region nodes) the field gets
-// the linear response the modes miss,
-//   U = B ξ + Σ_p R_p e_p,   R_p = K0⁻¹ E_p − B K̂0⁻¹ Bᵀ E_p   (3N × 3, E_p the unit forces at p),
-// K0 the full tangent at rest and K̂0 the reduced one (the cubature's, at ξ = 0), so that in the
-// linear range the corrected model IS the full one for such loads. e_p [N] is the external force
-// at p passed through the same QLV recursion as the elements' stresses (in the linear range the
-// full model's stress history is that of K u, so its displacement is K⁻¹ e with e the force's
-// recursion): held forces creep, released ones recover, as the full model's. The correction
-// acts on external forces only; its amplitude follows the material's stiffening through a
-// calibrated scale κ_p(|e|) (below) (a grasp's or probe's spring is not corrected, nor is
-// LocalStiffness), and costs one 3N pass per loaded correction node per step.
-// Under large forces the reduced equilibrium itself drifts from the full one inside span(B) —
-// on the liver under a held 0.7 N (long-term ~2 N elastic) the field's in-span error is 17 %
-// against a 3 % basis floor, while the out-of-span part is at the floor. (Likely the volume: the
-// full field's projection onto the modes changes the elements' volumes 1.4× as much as the
-// full field does — combinations of nearly isochoric large-strain snapshots are not isochoric —
-// and with the near-incompressible material, K ≈ 50 G, Galerkin trades the soft motion's
-// accuracy for volume.)
-// The correction then also carries the offset in the modes, B G_p(|e|) (e, |e|) (fitted by the
-// builder per node and magnitude, affine in the force's direction; one more n-vector and one
-// 3N × n pass per step while a correction node is loaded). ξ itself (the dynamics, the haptic
-// stiffness) is the reduced equilibrium's; the field shown and reported is corrected.
-//
-// Petrov–Galerkin (optional: a scene's `nonlinear_projection: PETROV_GALERKIN`; docs/reduced.md
-// compares it with Galerkin on the liver): the equations are tested with Ψ instead of B,
-//   r(ξ) = Ψᵀ f_ext + Ψᵀ f_int(X + B ξ) = 0,   Ψ = K0⁻¹ B,
-// so that for a linear K0 the reduced solution is ξ = (BᵀB)⁻¹ Bᵀ u: the L2 projection of the
-// full solution u = K0⁻¹ f onto the modes — the best field the basis holds — where Galerkin's is
-// the best in K0's energy norm, which weighs the stiff dent under the tool and leaves the soft
-// motion of the organ around it (most of the field's L2 norm) 2–4× the basis's floor (measured on
-// the liver). Nonlinear: the residual's linearised displacement K0⁻¹ r has no component in
-// span(B). Each sampled element carries a second gradient map D̃_ê (from Ψ) and
-//   Ψᵀ f_int ≈ −Σ_ê w_ê V_ê D̃_êᵀ vec P(F_ê),   K̂ = Σ_ê w_ê V_ê D̃_êᵀ (∂P/∂F)_ê D_ê,
-// the cubature trained on Ψᵀ f (ecsw.h). K̂ is not symmetric (an LU instead of a Cholesky
-// factor; at rest K̂ = BᵀB, the identity for orthonormal modes) and the forces are no longer an
-// energy's gradient: under large strain K̂ can turn singular (a 6 cm beam pushed 1.5 cm: an
-// eigenvalue of −1e-3 against 1 at rest) where Galerkin's, positive definite, cannot — Newton
-// then stops unconverged (counted). Galerkin stays the default for that. Loads, springs and gravity
-// are tested with Ψ: a spring's term is k Ψ_iᵀ (target − X_i − B_i ξ). The static correction is
-// then R_p = K0⁻¹ E_p − B K̂0⁻¹ Ψ_pᵀ (in the linear range still the full model for point forces at
-// p), and LocalStiffness the inverse of the symmetric part of the compliance B_i K̂⁻¹ Ψ_iᵀ.
+// The nonlinear reduced model that beats seed 000's (issue 12, SPEC §4.5): U = B ξ on the modes
+// as in seed 000, but ξ solves the Galerkin (or Petrov–Galerkin) projection of the full
+// hyperelastic–viscoelastic equilibrium, its forces and tangent by an ECSW cubature (ecsw.h) with
+// the Prony variables on the sampled elements; quasi-static Newton per step, and a static
+// correction of the field under point forces at the builder's region nodes. Derivations:
+// docs/reduced.md, "The nonlinear model". Allocation-free steps; cannot be cut. Pure: no I/O.
 #pragma once
 
 #include <Eigen/Cholesky>
@@ -112,7 +41,7 @@ struct NonlinearModelData {
   // iterate (counted as unconverged).
   double newton_tolerance = 1e-6;
   int max_newton_iterations = 30;
-  // The static correction (above; optional): its nodes (c, distinct, in [0, N)) and R
+  // The static correction (docs/reduced.md; optional): its nodes (c, distinct, in [0, N)) and R
   // (3N × 3c [m/N], node k's columns 3k..3k+2 the responses to unit x, y, z forces), finite.
   std::vector<int32_t> correction_nodes;
   Eigen::MatrixXd corrections;
@@ -132,7 +61,7 @@ struct NonlinearModelData {
   // training solves (builder.h).
   Eigen::MatrixXd correction_coefficients;
   // The Petrov–Galerkin test basis Ψ [m/N per unit mode], 3N × n, finite (optional: empty is
-  // Galerkin, Ψ = B). The builder's is Ψ = K0⁻¹ B (below).
+  // Galerkin, Ψ = B). The builder's is Ψ = K0⁻¹ B (docs/reduced.md, "Petrov–Galerkin").
   Eigen::MatrixXd test_modes;
 };
 
@@ -191,6 +120,10 @@ class NonlinearReducedModel final : public TissueModel {
 
  private:
   NonlinearReducedModel(NonlinearModelData data, const fem::TetElements& elements);
+  // Advance's Newton iteration on r(ξ) = 0 (nonlinear_model.cc), and the sampled elements'
+  // Prony variables after an accepted step of dt [s].
+  struct Newton;
+  void AdvanceProny(double dt, TissueState* state) const;
   // Stresses P of every sampled element at the state's gradient buffer (vec(F − I), 9 × m)
   // into p (9 × m), scaled by w V; false if an element is inverted (det F <= 0) or not finite.
   bool Stresses(const double* h, double g, const double* offset, double* p) const;

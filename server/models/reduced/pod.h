@@ -1,12 +1,7 @@
 // Karhunen–Loève modes (proper orthogonal decomposition) of displacement snapshots by the method
-// of snapshots (SPEC §4.5; seed 000 §3, after Sirovich 1987): with the snapshots as the columns
-// of Q (K DOFs × M snapshots, M ≪ K), the M × M matrix QᵀQ is eigen-decomposed, QᵀQ v_k = λ_k v_k,
-// and the modes are θ_k = Q v_k / √λ_k — the left singular vectors of Q, the eigenvectors of the
-// K × K correlation QQᵀ with the same eigenvalues (seed 000 uses C = (1/N) QQᵀ; the 1/N scales the
-// eigenvalues, not the modes) — at the cost of an M × M problem. The n leading modes
-// B = [θ_1 … θ_n] span the snapshots best in the least-squares sense: the part of the snapshots
-// they leave out is Σ_{k>n} λ_k.
-// Pure: no I/O. Allocates (offline, `somasim-reduce`).
+// of snapshots (SPEC §4.5; seed 000 §3, after Sirovich 1987): the eigen-decomposition of the
+// M × M QᵀQ instead of the K × K correlation (docs/reduced.md, "The modes"). Pure: no I/O.
+// Allocates (offline, `somasim-reduce`).
 #pragma once
 
 #include <Eigen/Core>

@@ -6,6 +6,8 @@
 #include <stdexcept>
 #include <string>
 
+#include "common/checks/finite.h"
+
 namespace somasim::models::reduced {
 
 void ProjectStiffness(const fem::FemModel& model, const mesh::Points& x,
@@ -109,8 +111,8 @@ Eigen::MatrixXd PetrovGalerkinTestBasis(const fem::FemModel& model, const Eigen:
   loads.reuse_factorisation = true;
   for (Eigen::Index j = 0; j < modes.cols(); ++j) {
     const double largest = modes.col(j).cwiseAbs().maxCoeff();
-    if (!(largest > 0.0) || !std::isfinite(largest)) continue;  // a zero mode tests nothing
-    const double scale = 1e-7 / largest;                        // [N per unit of the mode]
+    if (!checks::FinitePositive(largest)) continue;  // a zero mode tests nothing
+    const double scale = 1e-7 / largest;             // [N per unit of the mode]
     for (const double sign : {1.0, -1.0}) {
       Eigen::Map<Eigen::VectorXd>(forces.data(), forces.size()) = sign * scale * modes.col(j);
       auto state = model.MakeState();

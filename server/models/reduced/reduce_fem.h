@@ -1,7 +1,7 @@
 // From a full FEM model to seed 000's reduced model (SPEC §4.5): the projections of a chosen
-// stiffness onto the modes, and the choice among candidate stiffnesses (seed 000 §3: the initial
-// tangent gave 22 % L2 error on the liver, the tangent chosen among load levels 17 %).
-// Offline (allocates; CHOLMOD is not needed: the tangent is only multiplied).
+// stiffness onto the modes, and the choice among candidate stiffnesses (seed 000 §3; the seed's
+// figures: docs/reduced.md). Offline (allocates; CHOLMOD is not needed: the tangent is only
+// multiplied).
 #pragma once
 
 #include <Eigen/Core>
