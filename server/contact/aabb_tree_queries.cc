@@ -487,7 +487,6 @@ bool AabbTree::NearestToSegment(const Vector3d& p, const Vector3d& q, double rad
   const double box_margin = kSlabRelativeMargin * (scale_ + MaxAbs(p) + MaxAbs(q)) + 1e-30;
   auto box_grow = static_cast<float>(radius + box_margin);  // nor boxes farther than this
   int32_t best_triangle = -1;
-  double best_s = 0.0;
   Vector3d best_bary = Vector3d::Zero();
   BestFirstStack<float> stack;  // keyed by the box growth the node was tested with
   float entry = 0.0f;
@@ -514,7 +513,6 @@ bool AabbTree::NearestToSegment(const Vector3d& p, const Vector3d& q, double rad
         if (d2 < best_d2 || (d2 == best_d2 && (best_triangle < 0 || tri < best_triangle))) {
           best_d2 = d2;
           best_triangle = tri;
-          best_s = s;
           best_bary = bary;
           grown = std::sqrt(best_d2) + margin;
           box_grow = static_cast<float>(std::sqrt(best_d2) + box_margin);
@@ -541,7 +539,6 @@ bool AabbTree::NearestToSegment(const Vector3d& p, const Vector3d& q, double rad
     if (!stack.Pop(still_near, &current)) break;
   }
   if (best_triangle < 0) return false;
-  (void)best_s;
   const auto tri = triangles_.col(best_triangle);
   nearest->triangle = best_triangle;
   nearest->barycentric = best_bary;
