@@ -7,6 +7,7 @@
 #include <string>
 
 #include "common/checks/finite.h"
+#include "common/checks/tool_pose.h"
 
 namespace somasim::haptic {
 
@@ -30,14 +31,16 @@ const char* HapticLoop::fault_reason() const {
 }
 
 const char* CartesianStateProblem(const CartesianState& s) {
-  const Eigen::Vector3d p(s.position[0], s.position[1], s.position[2]);
-  if (!p.allFinite() || p.norm() > 10.0)
-    return "the device's position is not finite or beyond 10 m";
-  const Eigen::Vector4d q(s.orientation[0], s.orientation[1], s.orientation[2], s.orientation[3]);
-  if (!q.allFinite() || std::abs(q.norm() - 1.0) > 1e-3) {
-    return "the device's orientation is not a unit quaternion";
+  switch (checks::CheckToolPose(s.position, s.orientation, s.gripper)) {
+    case checks::ToolPoseProblem::kPosition:
+      return "the device's position is not finite or beyond 10 m";
+    case checks::ToolPoseProblem::kOrientation:
+      return "the device's orientation is not a unit quaternion";
+    case checks::ToolPoseProblem::kGrip:
+      return "the device's gripper is not in [0, 1]";
+    case checks::ToolPoseProblem::kNone:
+      break;
   }
-  if (!(s.gripper >= 0.0 && s.gripper <= 1.0)) return "the device's gripper is not in [0, 1]";
   return nullptr;
 }
 
@@ -151,8 +154,6 @@ ForceInput HapticLoop::ModelForce(const HapticLoopInput& in, bool estop, bool de
   fi.velocity = velocity_;
   fi.emergency_stop = estop;
   fi.device_ok = device_ok;
-  in_contact_ = false;
-  grasping_ = false;
   if (in.model != nullptr && have_pose_) {
     fi.model_age = std::max(0.0, 1e-9 * static_cast<double>(in.now_ns - in.model->received_ns));
     if (!clutched_) {

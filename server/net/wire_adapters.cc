@@ -2,8 +2,10 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-#include <cmath>
+#include <string>
+#include <string_view>
 
+#include "common/checks/tool_pose.h"
 #include "common/dds/topics.h"
 #include "common/force_model/force_model_wire.h"
 
@@ -15,25 +17,32 @@ std::string CheckToolCommand(const somasim_wire_ToolCommand& c, const server::Se
     return "format_version " + std::to_string(c.format_version) + " is not " +
            std::to_string(dds::kWireFormatVersion);
   }
-  const std::string id = c.tool == nullptr ? std::string() : std::string(c.tool);
+  // A view: a command's path allocates nothing until it is refused.
+  const std::string_view id = c.tool == nullptr ? std::string_view() : std::string_view(c.tool);
   *tool = session.ToolIndex(id);
-  if (*tool < 0) return "unknown tool \"" + id.substr(0, 64) + "\"";
-  const Eigen::Vector3d p(c.position[0], c.position[1], c.position[2]);
-  if (!p.allFinite() || p.norm() > 10.0) return "position is not finite or beyond 10 m";
-  const Eigen::Vector4d q(c.orientation[0], c.orientation[1], c.orientation[2], c.orientation[3]);
-  if (!q.allFinite() || std::abs(q.norm() - 1.0) > 1e-3) {
-    return "orientation is not a unit quaternion";
+  if (*tool < 0) return "unknown tool \"" + std::string(id.substr(0, 64)) + "\"";
+  switch (checks::CheckToolPose(c.position, c.orientation, c.jaw_closure)) {
+    case checks::ToolPoseProblem::kPosition:
+      return "position is not finite or beyond 10 m";
+    case checks::ToolPoseProblem::kOrientation:
+      return "orientation is not a unit quaternion";
+    case checks::ToolPoseProblem::kGrip:
+      return "jaw_closure is not in [0, 1]";
+    case checks::ToolPoseProblem::kNone:
+      break;
   }
-  if (!std::isfinite(c.jaw_closure) || c.jaw_closure < 0.0 || c.jaw_closure > 1.0) {
-    return "jaw_closure is not in [0, 1]";
-  }
-  input->pose.tip = p;
-  input->pose.orientation = Eigen::Quaterniond(q[0], q[1], q[2], q[3]).normalized();
+  input->pose.tip = Eigen::Vector3d(c.position[0], c.position[1], c.position[2]);
+  input->pose.orientation =
+      Eigen::Quaterniond(c.orientation[0], c.orientation[1], c.orientation[2], c.orientation[3])
+          .normalized();
   input->pose.jaw_opening = 1.0 - c.jaw_closure;
   input->buttons = c.buttons;
   input->sequence = c.seq;
   return "";
 }
+
+// The runner hands on as many held nodes as the wire carries: none is dropped here.
+static_assert(static_cast<uint32_t>(runner::kMaxHeld) == force_model::kMaxHeldNodes);
 
 void ToolOutputToWire(const runner::ToolOutput& out, somasim_wire_ForceModel* wire) {
   force_model::ToWire(out.model, wire);
