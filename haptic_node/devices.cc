@@ -12,13 +12,10 @@ void ArmDevice::Write(const HapticLoopInput& in, const somasim_arm_command_t& co
   if (in.header_problem == nullptr) arm_shm::WriteCommand(&block_.block().command, command);
 }
 
-void ArmDevice::Stop(uint64_t heartbeat) {
+void ArmDevice::Stop(uint64_t heartbeat, int64_t now_ns) {
   // Motors disabled (the driver's watchdog would also see the heartbeat stop).
   somasim_arm_command_t last{};
-  timespec ts{};
-  clock_gettime(CLOCK_MONOTONIC, &ts);
-  last.node_time_ns =
-      static_cast<uint64_t>(ts.tv_sec) * 1000000000U + static_cast<uint64_t>(ts.tv_nsec);
+  last.node_time_ns = static_cast<uint64_t>(now_ns);
   last.heartbeat = heartbeat;
   last.num_joints = block_.num_joints();
   if (block_.HeaderProblem() == nullptr) arm_shm::WriteCommand(&block_.block().command, last);
@@ -46,7 +43,7 @@ void ScriptDevice::Read(int64_t now_ns, HapticLoopInput* in) {
 }
 
 bool ScriptDevice::finished(int64_t now_ns) const {
-  return stop_at_end_ && start_ns_ >= 0 && ScriptTime(now_ns) > script_.duration() + 0.2;
+  return start_ns_ >= 0 && ScriptTime(now_ns) > script_.duration() + 0.2;
 }
 
 }  // namespace somasim::haptic

@@ -25,8 +25,9 @@ class Device {
   virtual void Read(int64_t now_ns, HapticLoopInput* in) = 0;
   // Hands the tick's command to the device.
   virtual void Write(const HapticLoopInput& in, const somasim_arm_command_t& command) = 0;
-  // The last command when the loop stops: motors disabled, its heartbeat `heartbeat`.
-  virtual void Stop(uint64_t heartbeat) = 0;
+  // The last command when the loop stops: motors disabled, its heartbeat `heartbeat`, stamped
+  // `now_ns` (the node's monotonic clock).
+  virtual void Stop(uint64_t heartbeat, int64_t now_ns) = 0;
   // Whether the device has nothing more to do (a script that ended).
   virtual bool finished(int64_t now_ns) const = 0;
   // For the log when a fault latches (the wire thread's, not the loop's): what the device's
@@ -39,7 +40,7 @@ class ArmDevice : public Device {
   explicit ArmDevice(arm_shm::ArmBlock& block) : block_(block) {}
   void Read(int64_t now_ns, HapticLoopInput* in) override;
   void Write(const HapticLoopInput& in, const somasim_arm_command_t& command) override;
-  void Stop(uint64_t heartbeat) override;
+  void Stop(uint64_t heartbeat, int64_t now_ns) override;
   bool finished(int64_t) const override { return false; }
   std::string FaultDetail() const override { return block_.HeaderError(); }
 
@@ -49,19 +50,17 @@ class ArmDevice : public Device {
 
 class ScriptDevice : public Device {
  public:
-  // `script` outlives the device; `stop_at_end`: finished 0.2 s after its last key.
-  ScriptDevice(const MockScript& script, bool stop_at_end)
-      : script_(script), stop_at_end_(stop_at_end) {}
+  // `script` outlives the device; finished 0.2 s after its last key.
+  explicit ScriptDevice(const MockScript& script) : script_(script) {}
   void Read(int64_t now_ns, HapticLoopInput* in) override;
   void Write(const HapticLoopInput&, const somasim_arm_command_t&) override {}
-  void Stop(uint64_t) override {}
+  void Stop(uint64_t, int64_t) override {}
   bool finished(int64_t now_ns) const override;
   // [s] script time at now_ns (0 at the first Read).
   double ScriptTime(int64_t now_ns) const;
 
  private:
   const MockScript& script_;
-  bool stop_at_end_;
   int64_t start_ns_ = -1;  // the first Read's clock
   uint64_t heartbeat_ = 0;
 };

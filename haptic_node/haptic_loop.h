@@ -140,7 +140,8 @@ class HapticLoop {
   DevicePose Pose(const HapticLoopInput& in);
   // 2–3. The velocity, the clutch and the tool's pose from a usable state.
   void FollowDevice(const DevicePose& pose, double dt, int64_t now_ns);
-  // 4. The model's force at the tool, into the device's frame (what the output stage gets).
+  // 4. The model's force at the tool, into the device's frame (what the output stage gets);
+  // sets in_contact_ and grasping_, which Tick has cleared.
   ForceInput ModelForce(const HapticLoopInput& in, bool estop, bool device_ok);
 
   const ArmKinematics* kinematics_ = nullptr;  // nullptr: a Cartesian device

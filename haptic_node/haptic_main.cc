@@ -138,7 +138,7 @@ int RunMock(NodeOptions o, const DeviceOptions& d, const std::string& config) {
   HapticLoopSettings settings;
   settings.output.dt = 1.0 / o.rate;
   HapticLoop loop(settings);
-  ScriptDevice device(*script, /*stop_at_end=*/true);
+  ScriptDevice device(*script);
   o.tools = script->tools();
   o.wait_for_server = true;
   o.stop_on_server_lost = true;

@@ -309,9 +309,7 @@ int RunNode(const NodeOptions& o, Device& device, HapticLoop& loop, const std::s
   }
   // The loop and Cyclone's threads wait on the clock and the wire: a short fair-scheduler slice
   // wakes them promptly next to a busy physics (common/app/scheduling.h).
-  if (const app::SliceResult r = app::SetSchedulerSlice(app::kWireSlice); !r.applied) {
-    Log(LogLevel::kWarning, "scheduler_slice_not_applied", {{"detail", r.detail}});
-  }
+  app::LogSchedulerSlice(app::SetSchedulerSlice(app::kWireSlice), "haptic node");
   std::unique_ptr<dds::Domain> domain;
   if (!config.empty()) domain = std::make_unique<dds::Domain>(o.domain, config);
   auto shared = std::make_unique<NodeShared>();

@@ -94,12 +94,9 @@ void RunLoopThread(const LoopThreadOptions& o, Device& device, HapticLoop& loop,
     // The newest model of the tool the device drives (none for a tool the node does not know).
     bool have_model = false;
     if (in.tool < kMaxNodeTools) {
-      ReceivedForceModel newest;
+      // Straight into the loop's copy: Read leaves it untouched when nothing new can be had.
       uint64_t version = 0;
-      if (shared.models[in.tool].Read(&newest, &version) && version > 0) {
-        model = newest;
-        model_tool = in.tool;
-      }
+      if (shared.models[in.tool].Read(&model, &version) && version > 0) model_tool = in.tool;
       have_model = model_tool == in.tool;
     }
     in.model = have_model ? &model : nullptr;
@@ -130,7 +127,7 @@ void RunLoopThread(const LoopThreadOptions& o, Device& device, HapticLoop& loop,
       next = MonotonicNs() + period;
     }
   }
-  device.Stop(loop.counters().ticks + 1);
+  device.Stop(loop.counters().ticks + 1, MonotonicNs());
 }
 
 }  // namespace somasim::haptic

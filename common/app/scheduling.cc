@@ -9,6 +9,8 @@
 #include <cstring>
 #include <stdexcept>
 
+#include "common/app/log.h"
+
 namespace somasim::app {
 namespace {
 
@@ -73,6 +75,16 @@ long long SchedulerSliceUs() {
   SchedAttr attr{};
   if (!GetAttr(&attr)) return -1;
   return static_cast<long long>(attr.sched_runtime / 1000u);
+}
+
+void LogSchedulerSlice(const SliceResult& r, const char* threads) {
+  if (r.applied) {
+    Log(LogLevel::kInfo, "scheduler_slice",
+        {{"threads", threads}, {"slice_us", SchedulerSliceUs()}});
+  } else {
+    Log(LogLevel::kWarning, "scheduler_slice_not_applied",
+        {{"threads", threads}, {"detail", r.detail}});
+  }
 }
 
 }  // namespace somasim::app

@@ -32,6 +32,10 @@ SliceResult SetSchedulerSlice(std::chrono::microseconds slice);
 // slice; 0 on kernels before 6.12; -1 when it cannot be read.
 long long SchedulerSliceUs();
 
+// Says in the log what SetSchedulerSlice did for `threads` (e.g. "physics thread"):
+// `scheduler_slice` with the slice, or `scheduler_slice_not_applied` with why.
+void LogSchedulerSlice(const SliceResult& r, const char* threads);
+
 // The slice the wire's waiting threads ask for.
 inline constexpr std::chrono::microseconds kWireSlice{100};
 

@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "common/app/child_process.h"
+#include "common/app/exit_codes.h"
 #include "common/app/signals.h"
 
 #ifndef SOMASIM_SOURCE_DIR
@@ -73,7 +74,7 @@ int ParseOptions(int argc, char** argv, DemoOptions* o) {
   try {
     cli.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    return cli.exit(e) == 0 ? 0 : 2;
+    return cli.exit(e) == 0 ? somasim::app::kExitOk : somasim::app::kExitUsage;
   }
   if (o->arm && cli.get_option("--script")->count() == 0) {
     o->script = std::string(SOMASIM_SOURCE_DIR) + "/haptic_node/scripts/palpate.txt";
@@ -267,7 +268,7 @@ int Demo(int argc, char** argv) {
   if (ec) {
     std::fprintf(stderr, "somasim-demo: cannot create %s: %s\n", o.out_dir.c_str(),
                  ec.message().c_str());
-    return 4;
+    return somasim::app::kExitIo;
   }
   const fs::path bin = fs::read_symlink("/proc/self/exe").parent_path();
   const std::string session = "demo-" + std::to_string(getpid());
@@ -279,7 +280,7 @@ int Demo(int argc, char** argv) {
   const std::string arm_name = "demo-" + std::to_string(getpid());
   Processes p;
   StartServerAndNode(o, bin, out, session, arm_name, &p);
-  if (!WaitForAll(o, bin, out, arm_name, &p)) return 70;
+  if (!WaitForAll(o, bin, out, arm_name, &p)) return somasim::app::kExitBug;
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const nlohmann::json s = ReadJson(out / "server_report.json");
   const nlohmann::json h = ReadJson(out / "haptic_report.json");
@@ -316,6 +317,6 @@ int main(int argc, char** argv) {
     return Demo(argc, argv);
   } catch (const std::exception& e) {
     std::fprintf(stderr, "somasim-demo: %s\n", e.what());
-    return 70;
+    return somasim::app::kExitBug;
   }
 }

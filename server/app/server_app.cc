@@ -47,16 +47,6 @@ std::string TraineeError(const std::string& trainee) {
   return "";
 }
 
-void LogSlice(const app::SliceResult& r, const char* threads) {
-  if (r.applied) {
-    Log(LogLevel::kInfo, "scheduler_slice",
-        {{"threads", threads}, {"slice_us", app::SchedulerSliceUs()}});
-  } else {
-    Log(LogLevel::kWarning, "scheduler_slice_not_applied",
-        {{"threads", threads}, {"detail", r.detail}});
-  }
-}
-
 // A running server: the physics on the calling thread (runner/physics_runner.h), the tool link's
 // two threads and the publisher's (net/). Its report, and each organ's last frame in
 // options.dump_final (`dumped`: false when it could not be written). Throws dds::DdsError.
@@ -66,7 +56,7 @@ nlohmann::ordered_json RunServer(const ServerOptions& options, Session& session,
   // Cyclone's threads, the tool link's and the publisher's (created from here on) wait on the
   // wire: a short slice wakes them promptly next to the busy physics thread, which returns to
   // the default slice.
-  LogSlice(app::SetSchedulerSlice(app::kWireSlice), "dds and publisher threads");
+  app::LogSchedulerSlice(app::SetSchedulerSlice(app::kWireSlice), "dds and publisher threads");
   std::random_device rd;
   const uint64_t server_id = (static_cast<uint64_t>(rd()) << 32) ^ rd();
   net::Endpoints endpoints(options.domain, dds_config, options.session, session.num_rigid() > 0);

@@ -90,9 +90,9 @@ void Publisher::PublishStart() {
   endpoints_.session.Write(info);
   for (int32_t k = 0; k < session_.num_organs(); ++k) {
     const organs::BuiltOrgan& b = session_.organ(k).built;
-    const std::vector<double> rest(b.rest().data(), b.rest().data() + b.rest().size());
     const std::vector<uint8_t> inner(static_cast<size_t>(b.triangles.cols()), 0);
-    PublishTopology(k, published_version_[static_cast<size_t>(k)], rest, b.triangles, inner);
+    PublishTopology(k, published_version_[static_cast<size_t>(k)],
+                    {b.rest().data(), static_cast<size_t>(b.rest().size())}, b.triangles, inner);
   }
   Heartbeat(2);
   PublishEvent(11, "", "session starts: " + session_.scene().name());
@@ -106,9 +106,9 @@ void Publisher::PublishEnd() {
 
 // One organ's topology: rest positions (3 × num_nodes [m]), surface triangles and their
 // inner-face marks, under `version`.
-void Publisher::PublishTopology(int32_t k, uint32_t version, const std::vector<double>& rest,
+void Publisher::PublishTopology(int32_t k, uint32_t version, std::span<const double> rest,
                                 const mesh::Triangles& surface,
-                                const std::vector<uint8_t>& inner_faces) {
+                                std::span<const uint8_t> inner_faces) {
   const organs::BuiltOrgan& b = session_.organ(k).built;
   std::vector<float> rest_f(rest.size());
   for (size_t i = 0; i < rest.size(); ++i) rest_f[i] = static_cast<float>(rest[i]);
@@ -116,7 +116,6 @@ void Publisher::PublishTopology(int32_t k, uint32_t version, const std::vector<d
   for (size_t i = 0; i < triangles.size(); ++i) {
     triangles[i] = static_cast<uint32_t>(surface.data()[i]);
   }
-  std::vector<uint8_t> inner = inner_faces;
   somasim_wire_OrganTopology t{};
   t.organ = dds::CString(b.id);
   t.format_version = dds::kWireFormatVersion;
@@ -127,8 +126,8 @@ void Publisher::PublishTopology(int32_t k, uint32_t version, const std::vector<d
   t.rest_positions._length = t.rest_positions._maximum = static_cast<uint32_t>(rest_f.size());
   t.triangles._buffer = triangles.data();
   t.triangles._length = t.triangles._maximum = static_cast<uint32_t>(triangles.size());
-  t.inner_face._buffer = inner.data();
-  t.inner_face._length = t.inner_face._maximum = static_cast<uint32_t>(inner.size());
+  t.inner_face._buffer = const_cast<uint8_t*>(inner_faces.data());  // the writer only reads
+  t.inner_face._length = t.inner_face._maximum = static_cast<uint32_t>(inner_faces.size());
   endpoints_.topology.Write(t);
 }
 

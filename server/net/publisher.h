@@ -12,6 +12,7 @@
 #include <cstdint>
 #include <map>
 #include <memory>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -61,8 +62,8 @@ class Publisher {
   const std::vector<uint64_t>& grasps() const { return grasps_; }  // per tool
 
  private:
-  void PublishTopology(int32_t k, uint32_t version, const std::vector<double>& rest,
-                       const mesh::Triangles& surface, const std::vector<uint8_t>& inner);
+  void PublishTopology(int32_t k, uint32_t version, std::span<const double> rest,
+                       const mesh::Triangles& surface, std::span<const uint8_t> inner);
   void PublishTopologies();
   void PublishFrames();
   void PublishRigidBodies();

@@ -1,7 +1,5 @@
 #include "server/runner/physics_runner.h"
 
-#include <pthread.h>
-#include <sched.h>
 #include <sys/eventfd.h>
 #include <unistd.h>
 
@@ -13,6 +11,7 @@
 #include <thread>
 
 #include "common/app/log.h"
+#include "common/app/realtime.h"
 #include "common/app/scheduling.h"
 #include "common/app/signals.h"
 
@@ -30,24 +29,14 @@ Clock::duration FromSeconds(double s) {
 
 // Start-up only: the physics thread's scheduling, said in the log.
 void SetUpThread(int rt_priority) {
-  const app::SliceResult r = app::SetSchedulerSlice(std::chrono::microseconds(0));
-  if (r.applied) {
-    Log(LogLevel::kInfo, "scheduler_slice",
-        {{"threads", "physics thread"}, {"slice_us", app::SchedulerSliceUs()}});
-  } else {
-    Log(LogLevel::kWarning, "scheduler_slice_not_applied",
-        {{"threads", "physics thread"}, {"detail", r.detail}});
-  }
+  app::LogSchedulerSlice(app::SetSchedulerSlice(std::chrono::microseconds(0)), "physics thread");
   if (rt_priority <= 0) return;
-  sched_param param{};
-  param.sched_priority = rt_priority;
-  const int rc = pthread_setschedparam(pthread_self(), SCHED_FIFO, &param);
-  if (rc != 0) {
-    Log(LogLevel::kWarning, "realtime_refused",
-        {{"detail", "SCHED_FIFO was refused (" + std::string(std::strerror(rc)) +
-                        "); the physics thread runs at normal priority"}});
-  } else {
+  const app::RealtimeResult r = app::SetFifoScheduling(rt_priority);
+  if (r.applied) {
     Log(LogLevel::kInfo, "realtime", {{"policy", "SCHED_FIFO"}, {"priority", rt_priority}});
+  } else {
+    Log(LogLevel::kWarning, "realtime_refused",
+        {{"detail", r.detail + "; the physics thread runs at normal priority"}});
   }
 }
 
@@ -96,8 +85,7 @@ void PhysicsRunner::Run() {
   const Clock::time_point start = Clock::now();
   Clock::time_point paced_start = start;
   Clock::time_point window_start = start;
-  bool fast_forward = replay_ != nullptr && options_.replay_from > 0.0;
-  publish_ = !fast_forward;
+  fast_forward_ = replay_ != nullptr && options_.replay_from > 0.0;
   while (!app::StopRequested() && !stop_.load()) {
     if (replay_ != nullptr) {
       if (ApplyReplay()) paced_start = Clock::now();  // a recorded reset: time starts at 0
@@ -118,10 +106,9 @@ void PhysicsRunner::Run() {
     }
     StepOnce();
     const Clock::time_point now = Clock::now();
-    if (fast_forward && session_.time() >= options_.replay_from - 1e-9) {
+    if (fast_forward_ && session_.time() >= options_.replay_from - 1e-9) {
       // A replay from --from: the fast-forward is over; publish and pace from here.
-      fast_forward = false;
-      publish_ = true;
+      fast_forward_ = false;
       HandOnPositions();
       HandOnRigidBodies();
       paced_start = now - FromSeconds(session_.time() / options_.speed);
@@ -131,13 +118,12 @@ void PhysicsRunner::Run() {
       counters_.p50 = window_.Quantile(0.5);
       counters_.p99 = window_.Quantile(0.99);
       counters_.pmax = window_.max();
-      counters_.rate = static_cast<double>(window_ticks_) / Seconds(now - window_start);
+      counters_.rate = static_cast<double>(window_.count()) / Seconds(now - window_start);
       window_.Clear();
-      window_ticks_ = 0;
       window_start = now;
     }
     if (options_.duration > 0.0 && session_.time() >= options_.duration - 1e-9) break;
-    if (options_.realtime && !fast_forward) {
+    if (options_.realtime && !fast_forward_) {
       const Clock::time_point target = paced_start + FromSeconds(session_.time() / options_.speed);
       if (now < target) {
         std::this_thread::sleep_until(target);
@@ -165,7 +151,6 @@ void PhysicsRunner::StepOnce() {
   window_.Add(us);
   total_.Add(us);
   total_sum_us_ += us;
-  ++window_ticks_;
   counters_.ticks.fetch_add(1);
   counters_.steps = session_.organ_steps();
   counters_.rejected_steps = session_.rejected_steps();
@@ -176,7 +161,7 @@ void PhysicsRunner::StepOnce() {
   if (recorder_ != nullptr && ticks % checkpoint_interval_ == 0) {
     recorder_->Checkpoint(ticks, session_.time(), session_);
   }
-  if (publish_) {
+  if (!fast_forward_) {
     HandOnPositions();
     HandOnRigidBodies();
   }
@@ -197,20 +182,19 @@ void PhysicsRunner::TakeCommands() {
 
 bool PhysicsRunner::ApplyReplay() {
   replay_->ApplyUpTo(counters_.ticks.load(), &session_);
-  bool reset = false;
-  for (const SessionEventRecord& e : session_.TakeEvents()) {
-    if (!events_.Push(e)) counters_.events_dropped.fetch_add(1);
-    reset |= e.kind == SessionEventRecord::Kind::kReset;
-  }
+  const bool reset = HandOnEvents();
   if (replay_->result().diverged) counters_.replay_diverged.store(true);
   return reset;
 }
 
-void PhysicsRunner::HandOnEvents() {
+bool PhysicsRunner::HandOnEvents() {
+  bool reset = false;
   for (const SessionEventRecord& e : session_.TakeEvents()) {
     if (!events_.Push(e)) counters_.events_dropped.fetch_add(1);
     if (recorder_ != nullptr) recorder_->Event(counters_.ticks.load(), session_.time(), e);
+    reset |= e.kind == SessionEventRecord::Kind::kReset;
   }
+  return reset;
 }
 
 // Each commanded tool's force model (with what its grasp holds) into its slot, and what the

@@ -49,7 +49,7 @@ struct ToolCommandMsg {
   ToolCommandInput input;
 };
 
-inline constexpr int32_t kMaxHeld = 64;  // grasped nodes handed on per tool
+inline constexpr int32_t kMaxHeld = 64;  // grasped nodes handed on per tool (the wire's cap)
 
 // One tool's output of a tick: plain data for a seqlock slot.
 struct ToolOutput {
@@ -155,9 +155,9 @@ class PhysicsRunner {
 
  private:
   void TakeCommands();
-  bool ApplyReplay();  // whether a recorded reset came
-  void StepOnce();     // Session::Step with its timing, and every output of the tick
-  void HandOnEvents();
+  bool ApplyReplay();   // whether a recorded reset came
+  void StepOnce();      // Session::Step with its timing, and every output of the tick
+  bool HandOnEvents();  // the session's events on (and recorded); whether a reset came
   void HandOnTools();
   void HandOnPositions();
   void HandOnTopologies();
@@ -168,7 +168,6 @@ class PhysicsRunner {
   Recorder* recorder_ = nullptr;
   RecordedInputs* replay_ = nullptr;
   uint64_t checkpoint_interval_ = 1;
-  bool divergence_reported_ = false;
   std::atomic<bool> stop_{false};
   std::atomic<bool> paused_{false};
   std::atomic<bool> reset_{false};
@@ -183,12 +182,11 @@ class PhysicsRunner {
   std::vector<std::unique_ptr<lockfree::TripleBuffer<TopologySnapshot>>> topologies_;
   std::vector<uint32_t> handed_version_;  // per organ: the last topology version handed on
   std::unique_ptr<lockfree::TripleBuffer<RigidSnapshot>> rigid_;
-  bool publish_ = true;  // false while a replay fast-forwards
+  bool fast_forward_ = false;  // a replay from --from on its way there: nothing is published
   RunnerCounters counters_;
   StepTimeHistogram window_;
   StepTimeHistogram total_;
   double total_sum_us_ = 0.0;
-  uint64_t window_ticks_ = 0;
   double wall_time_ = 0.0;
 };
 

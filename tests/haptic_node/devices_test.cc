@@ -51,7 +51,7 @@ ReceivedForceModel Pressing(const Vector3d& p, double depth, int64_t now, uint64
 }
 
 struct Rig {
-  Rig() : script(MockScript::Parse(kScript, "test")), device(script, true), loop(Settings()) {}
+  Rig() : script(MockScript::Parse(kScript, "test")), device(script), loop(Settings()) {}
   static HapticLoopSettings Settings() { return {}; }
   const somasim_arm_command_t& Tick(const ReceivedForceModel* model = nullptr) {
     now += kMs;
@@ -148,7 +148,7 @@ TEST(ScriptDevice, TicksAllocateNothing) {
 // side's models reach it through the slots, and it allocates nothing while it runs.
 TEST(LoopThread, TicksTheDeviceWithoutAllocatingAndHandsThePoseAndForcesOver) {
   const MockScript script = MockScript::Parse(kScript, "test");
-  ScriptDevice device(script, true);
+  ScriptDevice device(script);
   HapticLoop loop{HapticLoopSettings{}};
   auto shared = std::make_unique<NodeShared>();
   shared->record_forces = true;
